@@ -1,0 +1,38 @@
+# Two commands do all the set-up on a fresh machine:
+#   make demo   # installs into .venv, then runs the demo on the built-in sensor design
+#   make test   # installs into .venv, then runs the test suite and the quick benchmark gates
+PY ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+OUT ?= demo_out
+
+.PHONY: setup demo test test-fast bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	# pyrender pins PyOpenGL 3.1.0, whose EGL/OSMesa paths fail on Mesa 22 / numpy 2; 3.1.10 works
+	# (pip then prints a resolver warning about pyrender's pin, which is expected).
+	$(BIN)/python -m pip install -q 'PyOpenGL==3.1.10' 2>&1 | grep -v "pyrender 0.1.45 requires\|dependency conflicts\|Location" || true
+	$(BIN)/python -c "import mujoco, pyrender, cv2, trimesh, scipy, numpy"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/stereotactip demo --out $(OUT)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+	$(BIN)/stereotactip bench all --quick --check --out results/ci-quick
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+bench: $(STAMP)
+	$(BIN)/stereotactip bench all --out results/full
+
+clean:
+	rm -rf $(VENV) $(OUT) results .pytest_cache

@@ -1,0 +1,454 @@
+"""Sensor designs: one TOML file per skin module, read by the pipeline and the twin.
+
+A design fixes the marker pattern, the skin and pin dimensions, the optical stack between the
+cameras and the skin, and the nominal cameras. Files live in ``sim_assets/designs``; a user may
+also pass a path to their own file.
+
+Sensor frame (all 3-D output of the project, mm): origin at the centre of the undeformed outer
+skin surface, +z out of the skin toward the object, x along the camera baseline (left camera at
+negative x), y = z × x. The cameras sit below the skin (negative z) and look along +z. Their
+OpenCV axes (x right, y down, z forward) coincide with the sensor axes up to the toe-in, so image
+``u`` grows with sensor x and ``v`` with sensor y.
+
+Stack, from the object inward (rest state)::
+
+    z = 0                     outer skin surface
+    z = -T                    skin underside / top of the gel
+    z = -(T + H)              marker faces (pin tips), H = pin height
+    z = -(T + G)              gel / acrylic interface, G = gel thickness
+    z = -(T + G + A)          acrylic / air interface, A = acrylic thickness
+    z = -(T + G + A + air)    camera centres
+
+Canonical marker order (the ids shared by the design, the pipeline's DTRC and the twin's truth):
+rings from the outermost (layer m-1) to the centre (layer 0); within a ring counter-clockwise in the
+sensor x-y plane (which is also counter-clockwise in atan2(v, u) of the image), starting at the
+marker whose polar angle about the ring's centroid is closest to 0 (the +x direction).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from pipeline.errors import UserError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = [
+    "DesignError",
+    "Pattern",
+    "Skin",
+    "Pins",
+    "Markers",
+    "Optics",
+    "Gel",
+    "Camera",
+    "Cameras",
+    "SensorDesign",
+    "load_design",
+    "list_designs",
+    "design_path",
+    "marker_layout",
+]
+
+DEFAULT_DESIGN = "hexagon127"
+PATTERN_KINDS = ("hexagon", "circular", "square")
+
+
+class DesignError(UserError, ValueError):
+    """A design file is missing, malformed, or has an unknown or missing key."""
+
+
+@dataclass(frozen=True)
+class Pattern:
+    kind: str              # hexagon | circular | square
+    layers: int            # DTRC layer count m (rings including the centre marker)
+    links: int             # DTRC links l of an interior marker (reciprocal links: 2 x neighbours)
+    separation_mm: float   # nearest-neighbour spacing of markers (ring spacing for circular)
+    dome_height_mm: float  # 0 for a flat skin; sagitta of a spherical dome over the pattern radius
+
+
+@dataclass(frozen=True)
+class Skin:
+    thickness_mm: float
+    material: str
+    youngs_modulus_mpa: float
+    poisson_ratio: float
+    source: str
+
+
+@dataclass(frozen=True)
+class Pins:
+    height_mm: float
+    diameter_mm: float
+    youngs_modulus_mpa: float
+
+
+@dataclass(frozen=True)
+class Markers:
+    diameter_mm: float
+    thickness_mm: float
+
+
+@dataclass(frozen=True)
+class Optics:
+    air_gap_mm: float
+    acrylic_thickness_mm: float
+    acrylic_n: float
+    gel_thickness_mm: float
+    gel_n: float
+
+
+@dataclass(frozen=True)
+class Gel:
+    material: str
+    youngs_modulus_mpa: float
+    poisson_ratio: float
+    radius_mm: float       # clamped rim of the gel / skin (inner radius of the rigid mount)
+    source: str
+
+
+@dataclass(frozen=True)
+class Camera:
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist: tuple[float, ...]  # OpenCV order (k1, k2, p1, p2, k3)
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix, float64."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def D(self) -> np.ndarray:
+        """Distortion coefficients (5,), float64, OpenCV order."""
+        return np.asarray(self.dist, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Cameras:
+    width_px: int
+    height_px: int
+    fps: float
+    baseline_mm: float
+    toe_in_deg: float     # total convergence angle; each camera yaws toe_in/2 toward the centre
+    model_note: str
+    left: Camera
+    right: Camera
+
+
+@dataclass(frozen=True)
+class SensorDesign:
+    """A whole skin module + cameras. Build with :func:`load_design`."""
+
+    name: str
+    description: str
+    pattern: Pattern
+    skin: Skin
+    pins: Pins
+    markers: Markers
+    optics: Optics
+    gel: Gel
+    cameras: Cameras
+    source_file: str = ""
+
+    # ----- derived geometry -------------------------------------------------------------
+    @property
+    def marker_count(self) -> int:
+        return int(self.rest_markers_mm().shape[0])
+
+    @property
+    def marker_depth_mm(self) -> float:
+        """Distance from the outer skin surface to the marker faces at rest, T + H (mm)."""
+        return self.skin.thickness_mm + self.pins.height_mm
+
+    @property
+    def gel_acrylic_z_mm(self) -> float:
+        return -(self.skin.thickness_mm + self.optics.gel_thickness_mm)
+
+    @property
+    def acrylic_air_z_mm(self) -> float:
+        return self.gel_acrylic_z_mm - self.optics.acrylic_thickness_mm
+
+    @property
+    def camera_z_mm(self) -> float:
+        return self.acrylic_air_z_mm - self.optics.air_gap_mm
+
+    def rest_markers_mm(self) -> np.ndarray:
+        """Rest marker face centres in the sensor frame, (N, 3) float64, mm, canonical order."""
+        xy, _ = marker_layout(self.pattern)
+        z = np.full(len(xy), -self.marker_depth_mm) + self.dome_z_mm(xy)
+        return np.column_stack([xy, z])
+
+    def marker_layers(self) -> np.ndarray:
+        """Layer (ring) index of each marker in canonical order, (N,) int64; 0 = centre."""
+        return marker_layout(self.pattern)[1]
+
+    def pattern_radius_mm(self) -> float:
+        xy, _ = marker_layout(self.pattern)
+        return float(np.max(np.hypot(xy[:, 0], xy[:, 1])))
+
+    def dome_z_mm(self, xy_mm: np.ndarray) -> np.ndarray:
+        """Height of the (possibly domed) rest skin above z=0 at sensor x-y, (N,) mm.
+
+        A spherical cap of sagitta ``dome_height_mm`` spanning the gel radius, apex at z = 0 (the
+        sensor origin) and falling to ``-dome_height_mm`` at the rim; 0 everywhere for flat skins.
+        """
+        xy_mm = np.asarray(xy_mm, dtype=np.float64).reshape(-1, 2)
+        h = self.pattern.dome_height_mm
+        if h <= 0:
+            return np.zeros(len(xy_mm))
+        a = self.gel.radius_mm
+        R = (a * a + h * h) / (2 * h)
+        r2 = np.minimum(np.sum(xy_mm**2, axis=1), a * a)
+        return np.sqrt(R * R - r2) - R
+
+    def camera_poses(self) -> dict[str, np.ndarray]:
+        """Nominal camera poses: ``{'left': T, 'right': T}``, each 4x4 sensor_from_camera (mm).
+
+        Camera axes are OpenCV's. Each camera yaws by half the toe-in toward the sensor axis.
+        """
+        half = math.radians(self.cameras.toe_in_deg) / 2.0
+        out = {}
+        for side, sign in (("left", -1.0), ("right", 1.0)):
+            yaw = -sign * half  # left camera (x<0) turns toward +x
+            c, s = math.cos(yaw), math.sin(yaw)
+            R = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # rotation about +y
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = [sign * self.cameras.baseline_mm / 2.0, 0.0, self.camera_z_mm]
+            out[side] = T
+        return out
+
+    def with_overrides(self, overrides: Mapping[str, Any], *, name: str | None = None) -> "SensorDesign":
+        """A copy with dotted-key overrides, e.g. ``{"skin.thickness_mm": 0.5}``; validated."""
+        raw = to_dict(self)
+        for key, value in overrides.items():
+            parts = key.split(".")
+            node = raw
+            for p in parts[:-1]:
+                if p not in node or not isinstance(node[p], dict):
+                    raise DesignError(f"override {key!r}: no section {p!r}")
+                node = node[p]
+            if parts[-1] not in node:
+                raise DesignError(f"override {key!r}: unknown key {parts[-1]!r}")
+            node[parts[-1]] = value
+        raw["name"] = name or (self.name + "+" + ",".join(f"{k}={v}" for k, v in overrides.items()))
+        return design_from_dict(raw, source=self.source_file or "<overrides>")
+
+
+# ----- marker layouts --------------------------------------------------------------------
+
+def _canonical_ring_order(xy: np.ndarray) -> np.ndarray:
+    """Indices ordering one ring CCW from the marker nearest polar angle 0 about its centroid."""
+    c = xy.mean(axis=0)
+    ang = np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0])
+    start = int(np.argmin(np.abs(ang)))
+    ang_from_start = np.mod(ang - ang[start], 2 * np.pi)
+    return np.argsort(ang_from_start, kind="stable")
+
+
+def marker_layout(pattern: Pattern) -> tuple[np.ndarray, np.ndarray]:
+    """Marker x-y positions (N, 2) mm and layer indices (N,) in canonical order.
+
+    hexagon: hexagonal lattice, layer k holds 6k markers (127 for 7 layers);
+    circular: layer k holds 6k markers on a circle of radius k·separation (217 for 9 layers);
+    square: square lattice, layer k is the square ring of 8k markers (121 for 6 layers).
+    """
+    s = pattern.separation_mm
+    m = pattern.layers
+    rings: list[np.ndarray] = []
+    for k in range(m):
+        if k == 0:
+            rings.append(np.zeros((1, 2)))
+            continue
+        if pattern.kind == "hexagon":
+            corners = [np.array([math.cos(math.radians(60 * i)), math.sin(math.radians(60 * i))]) * k * s
+                       for i in range(6)]
+            pts = []
+            for i in range(6):
+                a, b = corners[i], corners[(i + 1) % 6]
+                for j in range(k):
+                    pts.append(a + (b - a) * j / k)
+            ring = np.array(pts)
+        elif pattern.kind == "circular":
+            n = 6 * k
+            t = 2 * np.pi * np.arange(n) / n
+            ring = np.column_stack([np.cos(t), np.sin(t)]) * k * s
+        elif pattern.kind == "square":
+            pts = [(i, j) for i in range(-k, k + 1) for j in range(-k, k + 1) if max(abs(i), abs(j)) == k]
+            ring = np.array(pts, dtype=np.float64) * s
+        else:  # validated earlier
+            raise DesignError(f"unknown pattern kind {pattern.kind!r}")
+        rings.append(ring[_canonical_ring_order(ring)])
+    xy = np.concatenate(rings[::-1])
+    layers = np.concatenate([np.full(len(r), k) for k, r in reversed(list(enumerate(rings)))])
+    xy[np.abs(xy) < 1e-12] = 0.0
+    return xy, layers.astype(np.int64)
+
+
+# ----- loading and validation ------------------------------------------------------------
+
+_SCHEMA: dict[str, dict[str, type | tuple[type, ...]]] = {
+    "pattern": {"kind": str, "layers": int, "links": int, "separation_mm": float, "dome_height_mm": float},
+    "skin": {"thickness_mm": float, "material": str, "youngs_modulus_mpa": float, "poisson_ratio": float,
+             "source": str},
+    "pins": {"height_mm": float, "diameter_mm": float, "youngs_modulus_mpa": float},
+    "markers": {"diameter_mm": float, "thickness_mm": float},
+    "optics": {"air_gap_mm": float, "acrylic_thickness_mm": float, "acrylic_n": float,
+               "gel_thickness_mm": float, "gel_n": float},
+    "gel": {"material": str, "youngs_modulus_mpa": float, "poisson_ratio": float, "radius_mm": float,
+            "source": str},
+    "cameras": {"width_px": int, "height_px": int, "fps": float, "baseline_mm": float, "toe_in_deg": float,
+                "model_note": str, "left": dict, "right": dict},
+}
+_CAMERA_KEYS = {"fx_px": float, "fy_px": float, "cx_px": float, "cy_px": float, "dist": list}
+_TOP = {"name": str, "description": str}
+
+
+def _check(value: Any, typ: type, where: str) -> Any:
+    if typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise DesignError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(float(value)):
+            raise DesignError(f"{where}: must be finite, got {value!r}")
+        return float(value)
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise DesignError(f"{where}: expected an integer, got {value!r}")
+        return int(value)
+    if not isinstance(value, typ):
+        raise DesignError(f"{where}: expected {typ.__name__}, got {value!r}")
+    return value
+
+
+def _section(raw: Mapping[str, Any], keys: Mapping[str, type], where: str) -> dict[str, Any]:
+    unknown = sorted(set(raw) - set(keys))
+    if unknown:
+        raise DesignError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(keys)})")
+    missing = [k for k in keys if k not in raw]
+    if missing:
+        raise DesignError(f"{where}: missing key {missing[0]!r}")
+    return {k: _check(raw[k], t, f"{where}.{k}") for k, t in keys.items()}
+
+
+def design_from_dict(raw: Mapping[str, Any], *, source: str = "<dict>") -> SensorDesign:
+    """Validate a parsed design mapping; errors name ``source`` and the offending key."""
+    where = source
+    allowed = set(_TOP) | set(_SCHEMA)
+    unknown = sorted(set(raw) - allowed)
+    if unknown:
+        raise DesignError(f"{where}: unknown key {unknown[0]!r}")
+    for k in list(_TOP) + list(_SCHEMA):
+        if k not in raw:
+            raise DesignError(f"{where}: missing key {k!r}")
+    top = {k: _check(raw[k], t, f"{where}: {k}") for k, t in _TOP.items()}
+    sec = {name: _section(raw[name] if isinstance(raw[name], Mapping) else
+                          _check(raw[name], dict, f"{where}: {name}"), keys, f"{where}: {name}")
+           for name, keys in _SCHEMA.items()}
+
+    cams = {}
+    for side in ("left", "right"):
+        c = _section(sec["cameras"][side], _CAMERA_KEYS, f"{where}: cameras.{side}")
+        dist = c["dist"]
+        if len(dist) != 5:
+            raise DesignError(f"{where}: cameras.{side}.dist: expected 5 coefficients (k1, k2, p1, p2, k3)")
+        c["dist"] = tuple(_check(d, float, f"{where}: cameras.{side}.dist") for d in dist)
+        cams[side] = Camera(**c)
+    cam_fields = {k: v for k, v in sec["cameras"].items() if k not in ("left", "right")}
+    design = SensorDesign(
+        name=top["name"], description=top["description"],
+        pattern=Pattern(**sec["pattern"]), skin=Skin(**sec["skin"]), pins=Pins(**sec["pins"]),
+        markers=Markers(**sec["markers"]), optics=Optics(**sec["optics"]), gel=Gel(**sec["gel"]),
+        cameras=Cameras(**cam_fields, left=cams["left"], right=cams["right"]), source_file=source,
+    )
+    _validate_values(design, where)
+    return design
+
+
+def _positive(value: float, where: str) -> None:
+    if not value > 0:
+        raise DesignError(f"{where}: must be > 0, got {value!r}")
+
+
+def _validate_values(d: SensorDesign, where: str) -> None:
+    if d.pattern.kind not in PATTERN_KINDS:
+        raise DesignError(f"{where}: pattern.kind: {d.pattern.kind!r} is not one of {PATTERN_KINDS}")
+    if d.pattern.layers < 2:
+        raise DesignError(f"{where}: pattern.layers: need at least 2 layers, got {d.pattern.layers}")
+    if d.pattern.dome_height_mm < 0:
+        raise DesignError(f"{where}: pattern.dome_height_mm: must be >= 0")
+    for key, value in [("pattern.separation_mm", d.pattern.separation_mm), ("skin.thickness_mm", d.skin.thickness_mm),
+                       ("pins.height_mm", d.pins.height_mm), ("pins.diameter_mm", d.pins.diameter_mm),
+                       ("markers.diameter_mm", d.markers.diameter_mm), ("optics.air_gap_mm", d.optics.air_gap_mm),
+                       ("optics.acrylic_thickness_mm", d.optics.acrylic_thickness_mm),
+                       ("optics.gel_thickness_mm", d.optics.gel_thickness_mm), ("gel.radius_mm", d.gel.radius_mm),
+                       ("skin.youngs_modulus_mpa", d.skin.youngs_modulus_mpa),
+                       ("gel.youngs_modulus_mpa", d.gel.youngs_modulus_mpa),
+                       ("cameras.baseline_mm", d.cameras.baseline_mm)]:
+        _positive(value, f"{where}: {key}")
+    for key, n in [("optics.acrylic_n", d.optics.acrylic_n), ("optics.gel_n", d.optics.gel_n)]:
+        if not 1.0 <= n <= 3.0:
+            raise DesignError(f"{where}: {key}: refractive index {n} outside [1, 3]")
+    if d.pins.height_mm >= d.optics.gel_thickness_mm:
+        raise DesignError(f"{where}: pins.height_mm must be smaller than optics.gel_thickness_mm")
+    if d.markers.diameter_mm >= d.pattern.separation_mm:
+        raise DesignError(f"{where}: markers.diameter_mm must be smaller than pattern.separation_mm")
+    if d.pattern_radius_mm() + d.pattern.separation_mm / 2 > d.gel.radius_mm:
+        raise DesignError(f"{where}: the marker pattern (radius {d.pattern_radius_mm():.2f} mm) does not fit "
+                          f"inside gel.radius_mm = {d.gel.radius_mm}")
+    if d.cameras.width_px <= 0 or d.cameras.height_px <= 0:
+        raise DesignError(f"{where}: cameras.width_px/height_px must be positive")
+
+
+def to_dict(design: SensorDesign) -> dict[str, Any]:
+    """The design as a plain TOML-shaped mapping (for JSON results and overrides)."""
+    raw = dataclasses.asdict(design)
+    raw.pop("source_file", None)
+    for side in ("left", "right"):
+        raw["cameras"][side]["dist"] = list(raw["cameras"][side]["dist"])
+    return raw
+
+
+def _designs_dir():
+    return resources.files("sim_assets").joinpath("designs")
+
+
+def list_designs() -> list[str]:
+    """Names of the built-in designs (files in ``sim_assets/designs``)."""
+    return sorted(p.name[:-5] for p in _designs_dir().iterdir() if p.name.endswith(".toml"))
+
+
+def design_path(name_or_path: str | Path) -> Path:
+    """Resolve a built-in design name or a path to a TOML file."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists():
+        if not p.is_file():
+            raise DesignError(f"design file {str(p)!r} does not exist")
+        return p
+    cand = _designs_dir().joinpath(f"{name_or_path}.toml")
+    if not cand.is_file():
+        raise DesignError(f"unknown design {str(name_or_path)!r}; built-in designs: {', '.join(list_designs())}")
+    return Path(str(cand))
+
+
+def load_design(name_or_path: str | Path = DEFAULT_DESIGN) -> SensorDesign:
+    """Load and validate a design by built-in name (e.g. ``"hexagon127"``) or TOML path."""
+    path = design_path(name_or_path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise DesignError(f"{path}: not valid TOML: {exc}") from exc
+    return design_from_dict(raw, source=str(path))

@@ -1,0 +1,3 @@
+from stereotactip.cli import main
+
+raise SystemExit(main())
