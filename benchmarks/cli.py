@@ -1,9 +1,160 @@
-"""Benchmarks subcommands of the ``stereotactip`` CLI."""
+"""Benchmarks subcommands of the ``stereotactip`` CLI: ``bench``, ``sweep``, ``report``.
+
+::
+
+    stereotactip bench NAME|all|list [--quick] [--check] [--seed S] --out DIR [--param k=v] [--set key=v]
+    stereotactip sweep --experiment NAME --skin 0.5,1.0,1.5 --separation 1.80,2.54,3.54
+                       --pattern hexagon,square,circular [--quick] --out DIR [--workers 2]
+    stereotactip report DIR
+
+Exit status of ``bench``: 0 when every experiment ran (and, with ``--check``, every guarded
+quick metric is within ``benchmarks/thresholds.toml``), 1 on an experiment error or a regression.
+"""
 
 from __future__ import annotations
 
 import argparse
+import ast
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import UserError
+
+
+class OptionError(UserError, ValueError):
+    """A command-line option value is malformed."""
+
+
+def _key_values(items: list[str] | None, option: str) -> dict[str, Any]:
+    """``["a=1", "b=x"]`` → ``{"a": 1, "b": "x"}`` (values parsed as Python literals when possible)."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise OptionError(f"{option} {item!r}: expected KEY=VALUE")
+        try:
+            out[key.strip()] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            out[key.strip()] = value
+    return out
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from benchmarks.registry import Context, all_experiments, get
+    from benchmarks.results import check, execute, load_thresholds
+
+    exps = all_experiments()
+    if args.name == "list":
+        for name, e in exps.items():
+            missing = e.missing_requirements()
+            state = "ready" if not missing else "unavailable (needs " + ", ".join(missing) + ")"
+            print(f"{name:20s} [{', '.join(e.tags)}] {state} — {e.description}")
+        return 0
+    if args.out is None:
+        raise OptionError("bench: --out DIR is required")
+    names = list(exps) if args.name == "all" else [get(args.name).name]
+    overrides = _key_values(args.set, "--set")
+    if overrides:  # validate once, before any long run
+        from pipeline.design import load_design
+
+        load_design("hexagon127").with_overrides(overrides)
+    params = _key_values(args.param, "--param")
+    out = Path(args.out)
+    records = {}
+    t0 = time.perf_counter()
+    for name in names:
+        ctx = Context(out_dir=out, quick=args.quick, seed=args.seed, overrides=overrides, params=params,
+                      progress=not args.no_progress)
+        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+        rec = execute(exps[name], ctx)
+        records[name] = rec
+        line = f"[bench] {name}: {rec['status']} in {rec['wall_time_s']:.1f} s"
+        if rec["status"] != "ok":
+            line += f" — {(rec.get('error') or '').strip().splitlines()[0] if rec.get('error') else ''}"
+        print(line, file=sys.stderr, flush=True)
+        for metric, m in rec["metrics"].items():
+            print(f"    {metric:34s} {m['value'] if m['value'] is not None else 'nan':>12} {m['unit']}")
+    print(f"[bench] {len(names)} experiment(s) in {time.perf_counter() - t0:.1f} s → {out}", file=sys.stderr)
+    status = 0
+    errors = [n for n, r in records.items() if r["status"] == "error"]
+    if errors:
+        print(f"[bench] error in: {', '.join(errors)}", file=sys.stderr)
+        status = 1
+    if args.check:
+        if not args.quick:
+            raise OptionError("bench --check: thresholds guard the --quick variant; add --quick")
+        violations = check(records, load_thresholds(), experiments=names)
+        for v in violations:
+            print(str(v))
+        if violations:
+            status = 1
+        else:
+            print("[bench] check: all guarded metrics within benchmarks/thresholds.toml", file=sys.stderr)
+    return status
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from benchmarks.sweep import make_cells, parse_floats, parse_patterns, run_sweep
+
+    cells = make_cells(parse_floats(args.skin, "skin"), parse_floats(args.separation, "separation"),
+                       parse_patterns(args.pattern))
+    res = run_sweep(args.experiment, cells, Path(args.out), seed=args.seed, quick=args.quick,
+                    workers=args.workers, params=_key_values(args.param, "--param"),
+                    progress=not args.no_progress)
+    bad = [r for r in res["rows"] if r["status"] not in ("ok", "invalid")]
+    print(f"[sweep] {len(res['rows'])} cells → {res['csv']}, {res['json']}"
+          + (f", {res['figure']}" if res["figure"] else ""), file=sys.stderr)
+    for r in res["rows"]:
+        if r["status"] != "ok":
+            print(f"[sweep] {r['cell']}: {r['status']} {r['error']}", file=sys.stderr)
+    return 1 if bad else 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from benchmarks.report import write_report
+
+    path = write_report(Path(args.dir))
+    print(path)
+    return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this package's subcommands to the top-level parser."""
+    p = sub.add_parser("bench", help="run the paper's experiments (twin frames through the pipeline)")
+    p.add_argument("name", help="experiment name, 'all', or 'list'")
+    p.add_argument("--quick", action="store_true", help="reduced grid (the CI variant)")
+    p.add_argument("--check", action="store_true", help="compare quick metrics with benchmarks/thresholds.toml")
+    p.add_argument("--seed", type=int, default=0, help="root random seed (default 0)")
+    p.add_argument("--out", metavar="DIR", help="output directory for JSON and PNG")
+    p.add_argument("--param", action="append", metavar="KEY=VALUE", help="experiment knob override")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="design override, e.g. skin.thickness_mm=0.5")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=_bench)
+
+    s = sub.add_parser("sweep", help="run one experiment over skin × separation × pattern cells")
+    s.add_argument("--experiment", required=True)
+    s.add_argument("--skin", default="1.0", help="skin thicknesses, mm, comma-separated")
+    s.add_argument("--separation", default="2.54", help="marker separations, mm, comma-separated")
+    s.add_argument("--pattern", default="hexagon", help="subset of hexagon,square,circular")
+    s.add_argument("--quick", action="store_true")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", metavar="DIR", required=True)
+    s.add_argument("--workers", type=int, default=2)
+    s.add_argument("--param", action="append", metavar="KEY=VALUE")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=_sweep)
+
+    r = sub.add_parser("report", help="write DIR/report.md from the benchmark results in DIR")
+    r.add_argument("dir", metavar="DIR")
+    r.set_defaults(func=_report)
+
+    import importlib
+    import importlib.util
+
+    if importlib.util.find_spec("benchmarks.cli_terrain") is not None:  # the terrain engineer's commands
+        cli_terrain = importlib.import_module("benchmarks.cli_terrain")
+        if hasattr(cli_terrain, "register"):
+            cli_terrain.register(sub)

@@ -1,0 +1,140 @@
+"""``stereotactip report DIR``: one Markdown page over the JSON records and figures in DIR.
+
+The page holds a run summary, the table "paper figure vs this run" (each experiment's declared
+paper values next to the measured metric, then the paper's qualitative claims with this run's
+verdict), the threshold gate for quick runs, and one section per experiment with its metrics,
+notes, findings and figures; sweep tables found in DIR are appended.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+from benchmarks.results import ResultsError, check, load_records, load_thresholds
+
+__all__ = ["write_report", "render_report"]
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, (int, float)):
+        if not math.isfinite(value):
+            return "—"
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def _verdict(agrees: bool | None) -> str:
+    return {True: "agrees", False: "**disagrees**", None: "undecided"}[agrees]
+
+
+def _md_escape(text: str) -> str:
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path) -> str:
+    """The Markdown text of the report (figure links relative to ``out_dir``)."""
+    lines: list[str] = ["# StereoTacTip benchmark report", ""]
+    if not records:
+        lines += ["No experiment records in this directory.", ""]
+    recs = dict(sorted(records.items()))
+    any_rec = next(iter(recs.values()), None)
+    if any_rec is not None:
+        quick = {r["quick"] for r in recs.values()}
+        commits = sorted({r["commit"] for r in recs.values()})
+        seeds = sorted({r["seed"] for r in recs.values()})
+        total = sum(float(r.get("wall_time_s") or 0.0) for r in recs.values())
+        v = any_rec["versions"]
+        lines += [f"- commit: {', '.join(commits)}",
+                  f"- variant: {'quick' if quick == {True} else 'full' if quick == {False} else 'mixed quick/full'}",
+                  f"- seed(s): {', '.join(map(str, seeds))}",
+                  f"- total wall time: {total:.1f} s",
+                  f"- versions: " + ", ".join(f"{k} {val}" for k, val in v.items()), ""]
+
+    lines += ["## Summary", "", "| experiment | status | wall time (s) | design(s) |", "| --- | --- | --- | --- |"]
+    for name, r in recs.items():
+        status = r["status"] if r["status"] == "ok" else f"**{r['status']}**"
+        lines.append(f"| {name} | {status} | {_fmt(r.get('wall_time_s'), 3)} | "
+                     f"{_md_escape(', '.join(r.get('designs_used') or [r['design'].get('name', '?')]))} |")
+    lines.append("")
+
+    lines += ["## Paper figure vs this run", "",
+              "| experiment | quantity | paper | this run | unit | where in the paper |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    for name, r in recs.items():
+        for metric, p in r.get("paper", {}).items():
+            m = r["metrics"].get(metric)
+            lines.append(f"| {name} | {metric} | {_fmt(p['value'])} | {_fmt(m['value'] if m else None)} | "
+                         f"{p['unit']} | {_md_escape(p['text'])} |")
+    lines += ["", "Trends and qualitative claims:", "",
+              "| experiment | paper's claim | this run | verdict |", "| --- | --- | --- | --- |"]
+    for name, r in recs.items():
+        for f in r.get("findings", []):
+            lines.append(f"| {name} | {_md_escape(f['claim'])} | {_md_escape(f['observed'])} | {_verdict(f['agrees'])} |")
+    lines.append("")
+
+    quick_recs = {n: r for n, r in recs.items() if r.get("quick")}
+    if quick_recs:
+        lines += ["## Regression gate (benchmarks/thresholds.toml)", ""]
+        try:
+            violations = check(quick_recs, load_thresholds(), experiments=list(quick_recs))
+        except ResultsError as exc:
+            lines += [f"thresholds file unreadable: {exc}", ""]
+        else:
+            lines += [f"- {v}" for v in violations] or ["All guarded quick metrics are within their thresholds."]
+            lines.append("")
+
+    for name, r in recs.items():
+        lines += [f"## {name}", ""]
+        if r.get("description"):
+            lines += [r["description"], ""]
+        if r.get("error"):
+            lines += ["```", str(r["error"]).strip(), "```", ""]
+        if r["metrics"]:
+            lines += ["| metric | value | unit |", "| --- | --- | --- |"]
+            lines += [f"| {k} | {_fmt(m['value'])} | {m['unit']} |" for k, m in r["metrics"].items()]
+            lines.append("")
+        for note in r.get("notes", []):
+            lines.append(f"- {_md_escape(note)}")
+        for f in r.get("findings", []):
+            lines.append(f"- finding ({_verdict(f['agrees'])}): {_md_escape(f['claim'])} — {_md_escape(f['observed'])}")
+        if r.get("notes") or r.get("findings"):
+            lines.append("")
+        for fig in r.get("figures", []):
+            lines += [f"![{name}: {Path(fig).stem}]({fig})", ""]
+
+    for path in sorted(out_dir.glob("sweep_*.json")):
+        try:
+            sweep = json.loads(path.read_text())
+            rows, units = sweep["rows"], sweep["units"]
+        except (OSError, json.JSONDecodeError, KeyError, TypeError):
+            continue
+        lines += [f"## Sweep: {sweep.get('sweep', path.stem)}", ""]
+        metrics = list(units)
+        lines.append("| cell | status | " + " | ".join(f"{m} ({units[m]})" for m in metrics) + " |")
+        lines.append("| --- | --- | " + " | ".join("---" for _ in metrics) + " |")
+        for row in rows:
+            lines.append(f"| {row['cell']} | {row['status']} | " + " | ".join(_fmt(row.get(m)) for m in metrics) + " |")
+        lines.append("")
+        png = path.with_suffix(".png")
+        if png.is_file():
+            lines += [f"![sweep]({png.name})", ""]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(out_dir: Path) -> Path:
+    """Write ``out_dir/report.md`` from the records there; returns its path."""
+    out_dir = Path(out_dir)
+    records = load_records(out_dir)
+    has_sweeps = any(out_dir.glob("sweep_*.json"))
+    if not records and not has_sweeps:
+        raise ResultsError(f"results directory {out_dir}: no experiment JSON records or sweep tables found")
+    path = out_dir / "report.md"
+    path.write_text(render_report(records, out_dir))
+    return path

@@ -1,0 +1,239 @@
+"""Design sweeps: one experiment over a grid of skin thickness × marker separation × pattern.
+
+Each cell is one design (the built-in design of that pattern kind with the cell's overrides) and
+one run of the experiment in its own directory ``OUT/cells/<cell id>/``; its JSON record is what
+makes a sweep resumable (a cell whose record says ``ok`` with the same seed and quick flag is not
+recomputed). Cells run in parallel in spawned worker processes. The results table is written as
+``OUT/sweep_<experiment>.csv`` and ``.json`` with a summary figure ``OUT/sweep_<experiment>.png``.
+
+Changing the separation keeps the pattern's radius: ``layers = round(R_base / separation) + 1``
+where ``R_base = (layers - 1) · separation`` of the built-in design (the outer ring's distance along
++x), one ring fewer if that does not fit the gel; this reproduces the built-in 61 / 127 /
+217-marker hexagons at 3.54 / 2.54 / 1.80 mm.
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import json
+import math
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+from pipeline.errors import UserError
+
+__all__ = ["Cell", "make_cells", "run_sweep", "BASE_DESIGN", "SweepError"]
+
+BASE_DESIGN = {"hexagon": "hexagon127", "square": "square121", "circular": "circular217_dome"}
+
+
+class SweepError(UserError, ValueError):
+    """A sweep axis value is malformed or names an unknown pattern."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    pattern: str
+    separation_mm: float
+    skin_mm: float
+
+    @property
+    def cell_id(self) -> str:
+        return f"{self.pattern}_sep{self.separation_mm:.2f}_skin{self.skin_mm:.2f}"
+
+    def overrides(self) -> dict[str, Any]:
+        """Design overrides on ``BASE_DESIGN[pattern]`` (layers chosen to keep the pattern radius)."""
+        from pipeline.design import load_design
+
+        from pipeline.design import DesignError
+
+        base = load_design(BASE_DESIGN[self.pattern])
+        axis_radius_mm = (base.pattern.layers - 1) * base.pattern.separation_mm  # outer ring on the +x axis
+        layers = max(int(round(axis_radius_mm / self.separation_mm)) + 1, 2)
+        while True:
+            ov = {"skin.thickness_mm": self.skin_mm, "pattern.separation_mm": self.separation_mm,
+                  "pattern.layers": layers}
+            try:
+                base.with_overrides(ov)
+                return ov
+            except DesignError:
+                if layers <= 2:
+                    raise
+                layers -= 1  # the rounded ring count overflows the gel: drop the outer ring
+
+    def design(self):
+        from pipeline.design import load_design
+
+        return load_design(BASE_DESIGN[self.pattern]).with_overrides(self.overrides(), name=self.cell_id)
+
+
+def parse_floats(text: str, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise SweepError(f"--{what} {text!r}: expected comma-separated numbers, e.g. 0.5,1.0,1.5") from None
+    if not values or any(not math.isfinite(v) or v <= 0 for v in values):
+        raise SweepError(f"--{what} {text!r}: values must be positive numbers")
+    return values
+
+
+def parse_patterns(text: str) -> list[str]:
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    bad = [v for v in values if v not in BASE_DESIGN]
+    if not values or bad:
+        raise SweepError(f"--pattern {text!r}: expected a comma-separated subset of {', '.join(BASE_DESIGN)}")
+    return values
+
+
+def make_cells(skins: Sequence[float], separations: Sequence[float], patterns: Sequence[str]) -> list[Cell]:
+    return [Cell(p, s, t) for p, s, t in itertools.product(patterns, separations, skins)]
+
+
+def _cell_record_path(out_dir: Path, experiment: str, cell: Cell) -> Path:
+    return out_dir / "cells" / cell.cell_id / f"{experiment}.json"
+
+
+def _is_done(path: Path, *, seed: int, quick: bool) -> bool:
+    if not path.is_file():
+        return False
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return rec.get("status") == "ok" and rec.get("seed") == seed and rec.get("quick") == quick
+
+
+def _worker_init() -> None:
+    # Two workers on two cores: keep each single-threaded so they do not oversubscribe.
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def _run_cell(experiment: str, cell: Cell, out_dir: str, seed: int, quick: bool,
+              params: dict[str, Any]) -> dict[str, Any]:
+    """Worker: run one cell (module-level so spawned processes can unpickle it)."""
+    from benchmarks.registry import Context, get
+    from benchmarks.results import execute
+    from pipeline.design import DesignError
+
+    cell_dir = Path(out_dir) / "cells" / cell.cell_id
+    exp = get(experiment)
+    try:
+        overrides = cell.overrides()
+        cell.design()  # validate before running (a 3.54 mm square may not fit the gel, etc.)
+    except DesignError as exc:
+        return {"experiment": experiment, "status": "invalid", "error": str(exc), "metrics": {}}
+    ctx = Context(out_dir=cell_dir, quick=quick, seed=seed, overrides=overrides, params=params,
+                  progress=False, base_design=BASE_DESIGN[cell.pattern])
+    return execute(exp, ctx)
+
+
+def run_sweep(experiment: str, cells: Iterable[Cell], out_dir: Path, *, seed: int = 0, quick: bool = False,
+              workers: int = 2, params: dict[str, Any] | None = None, progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) a sweep; returns ``{"rows": [...], "csv": path, "json": path, "figure": path}``."""
+    from tqdm import tqdm
+
+    from benchmarks.registry import get
+
+    exp = get(experiment)  # fail early on an unknown name
+    missing = exp.missing_requirements()
+    if missing:
+        raise SweepError(f"experiment {experiment!r} is unavailable: missing {', '.join(missing)}")
+    if workers < 1:
+        raise SweepError(f"--workers {workers}: must be >= 1")
+    cells = list(cells)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    params = dict(params or {})
+    records: dict[str, dict[str, Any]] = {}
+    todo = []
+    for cell in cells:
+        path = _cell_record_path(out_dir, experiment, cell)
+        if _is_done(path, seed=seed, quick=quick):
+            records[cell.cell_id] = json.loads(path.read_text())
+        else:
+            todo.append(cell)
+    bar = tqdm(total=len(cells), initial=len(cells) - len(todo), desc=f"sweep {experiment}",
+               disable=not progress, dynamic_ncols=True)
+    if todo:
+        if workers == 1:
+            for cell in todo:
+                records[cell.cell_id] = _run_cell(experiment, cell, str(out_dir), seed, quick, params)
+                bar.update()
+        else:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                                     initializer=_worker_init) as pool:
+                futures = {pool.submit(_run_cell, experiment, c, str(out_dir), seed, quick, params): c for c in todo}
+                for fut in as_completed(futures):
+                    cell = futures[fut]
+                    try:
+                        records[cell.cell_id] = fut.result()
+                    except Exception as exc:  # noqa: BLE001 — a crashed worker is one failed cell
+                        records[cell.cell_id] = {"status": "error", "error": f"{type(exc).__name__}: {exc}",
+                                                 "metrics": {}}
+                    bar.update()
+    bar.close()
+
+    metric_names = list(exp.metrics)
+    rows = []
+    for cell in cells:
+        rec = records[cell.cell_id]
+        row: dict[str, Any] = {"cell": cell.cell_id, "pattern": cell.pattern, "separation_mm": cell.separation_mm,
+                               "skin_mm": cell.skin_mm, "status": rec.get("status"),
+                               "wall_time_s": rec.get("wall_time_s"),
+                               "error": (rec.get("error") or "").splitlines()[0] if rec.get("error") else ""}
+        for m in metric_names:
+            v = rec.get("metrics", {}).get(m)
+            row[m] = None if v is None else v.get("value")
+        rows.append(row)
+    units = {m: u for m, u in exp.metrics.items()}
+    csv_path = out_dir / f"sweep_{experiment}.csv"
+    with csv_path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["cell"])
+        w.writeheader()
+        w.writerows(rows)
+    json_path = out_dir / f"sweep_{experiment}.json"
+    json_path.write_text(json.dumps({"sweep": experiment, "seed": seed, "quick": quick, "units": units,
+                                     "rows": rows}, indent=2, allow_nan=False) + "\n")
+    fig_path = _summary_figure(experiment, rows, units, out_dir / f"sweep_{experiment}.png")
+    return {"rows": rows, "csv": csv_path, "json": json_path, "figure": fig_path}
+
+
+def _summary_figure(experiment: str, rows: list[dict[str, Any]], units: dict[str, str], path: Path) -> Path | None:
+    """Each metric (up to 4) vs separation, one line per skin thickness, one marker style per pattern."""
+    from benchmarks.results import COLUMN_IN, paper_style, save_figure
+
+    metrics = [m for m in units if any(isinstance(r.get(m), (int, float)) for r in rows)][:4]
+    if not metrics:
+        return None
+    with paper_style() as plt:
+        fig, axes = plt.subplots(1, len(metrics), figsize=(COLUMN_IN * len(metrics) * 0.75, 2.4), squeeze=False)
+        markers = {"hexagon": "o", "square": "s", "circular": "^"}
+        skins = sorted({r["skin_mm"] for r in rows})
+        colours = plt.cm.viridis([i / max(len(skins) - 1, 1) for i in range(len(skins))])
+        for ax, m in zip(axes[0], metrics):
+            for pattern in sorted({r["pattern"] for r in rows}):
+                for skin, colour in zip(skins, colours):
+                    pts = sorted((r["separation_mm"], r[m]) for r in rows
+                                 if r["pattern"] == pattern and r["skin_mm"] == skin and isinstance(r[m], (int, float)))
+                    if pts:
+                        xs, ys = zip(*pts)
+                        ax.plot(xs, ys, marker=markers.get(pattern, "x"), color=colour, ms=3,
+                                label=f"{pattern}, skin {skin:g} mm")
+            ax.set_xlabel("marker separation (mm)")
+            ax.set_ylabel(f"{m} ({units[m]})")
+            ax.grid(True)
+        axes[0][0].legend(loc="best")
+        fig.suptitle(f"sweep: {experiment}")
+        return save_figure(fig, path)

@@ -1,0 +1,289 @@
+"""The benchmark framework (registry, JSON records, thresholds gate, report, sweep, CLI) and one test
+that walks the registry and checks every experiment's invariants (dm_control ``suite_test`` style).
+
+Cheap experiments (tag ``cheap``) run for real with tiny settings; the expensive ones are exercised
+by ``stereotactip bench all --quick --check`` in CI (``make test``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from benchmarks import registry as reg
+from benchmarks import results as res
+from benchmarks.registry import Context, Finding, PaperValue, Result, register
+from benchmarks.report import render_report, write_report
+from benchmarks.sweep import Cell, make_cells, run_sweep
+from stereotactip.cli import main
+
+
+# ----- a private experiment used to exercise the framework itself ------------------------------
+
+def _toy_run(ctx: Context) -> Result:
+    """Toy: mean of uniform samples (known value 0.5) — a test fixture, not a paper experiment."""
+    n = int(ctx.param("n", 2000, quick=500))
+    x = ctx.rng("toy").uniform(size=n)
+    out = Result(designs=[ctx.design()])
+    out.metric("mean", x.mean(), "1")
+    out.metric("skin_mm", out.designs[0].skin.thickness_mm, "mm")
+    out.tables["samples"] = [{"i": i, "x": float(v)} for i, v in enumerate(x[:3])]
+    out.findings.append(Finding("the mean is one half", f"mean {x.mean():.3f}", abs(x.mean() - 0.5) < 0.05))
+    with res.paper_style() as plt:
+        fig, ax = plt.subplots(figsize=(2, 2))
+        ax.hist(x, bins=10)
+        out.figures.append(res.save_figure(fig, ctx.figure_path("toy_hist")))
+    return out
+
+
+@pytest.fixture
+def toy(monkeypatch):
+    """Register the toy experiment in the global registry for the duration of a test."""
+    monkeypatch.setattr(reg, "_REGISTRY", dict(reg._REGISTRY))
+    register("toy", tags=("quick",), metrics={"mean": "1", "skin_mm": "mm"},
+             paper={"mean": PaperValue(0.5, "1", "E[U(0,1)]")})(_toy_run)
+    return reg._REGISTRY["toy"]
+
+
+# Mean of n uniform samples has standard deviation sqrt(1/12/n) = 0.013 for n = 500: 5 sigma = 0.065.
+TOY_MEAN_TOL = 5 * math.sqrt(1 / 12 / 500)
+
+
+def test_execute_writes_a_complete_record(toy, tmp_path):
+    ctx = Context(out_dir=tmp_path, quick=True, seed=3, progress=False)
+    rec = res.execute(toy, ctx)
+    on_disk = res.load_record(tmp_path / "toy.json")
+    assert on_disk == rec
+    assert set(res.REQUIRED_KEYS) <= set(rec)
+    assert rec["status"] == "ok" and rec["error"] is None
+    assert rec["quick"] is True and rec["seed"] == 3
+    assert rec["metrics"]["mean"]["unit"] == "1"
+    assert abs(rec["metrics"]["mean"]["value"] - 0.5) < TOY_MEAN_TOL
+    assert rec["design"]["name"] == "hexagon127" and rec["design"]["skin"]["thickness_mm"] == 1.0
+    assert rec["commit"] == "unknown" or len(rec["commit"]) == 40
+    assert {"numpy", "mujoco", "opencv"} <= set(rec["versions"])
+    assert rec["figures"] == ["toy_hist.png"] and (tmp_path / "toy_hist.png").stat().st_size > 1000
+    assert rec["findings"][0]["agrees"] is True
+
+
+def test_seed_makes_runs_reproducible_and_streams_independent(toy, tmp_path):
+    a = res.execute(toy, Context(out_dir=tmp_path / "a", quick=True, seed=1, progress=False))
+    b = res.execute(toy, Context(out_dir=tmp_path / "b", quick=True, seed=1, progress=False))
+    c = res.execute(toy, Context(out_dir=tmp_path / "c", quick=True, seed=2, progress=False))
+    assert a["metrics"]["mean"] == b["metrics"]["mean"]
+    assert a["metrics"]["mean"] != c["metrics"]["mean"]
+    ctx = Context(out_dir=tmp_path, seed=1)
+    assert not np.array_equal(ctx.rng("x").uniform(size=4), ctx.rng("y").uniform(size=4))
+
+
+def test_overrides_and_sweep_base_design_reach_the_design(toy, tmp_path):
+    ctx = Context(out_dir=tmp_path, quick=True, overrides={"skin.thickness_mm": 0.5}, progress=False)
+    rec = res.execute(toy, ctx)
+    assert rec["metrics"]["skin_mm"]["value"] == 0.5 and rec["overrides"] == {"skin.thickness_mm": 0.5}
+    ctx = Context(out_dir=tmp_path, base_design="square121")
+    assert [d.name for d in ctx.designs(["hexagon127", "circular217_dome"])] == ["square121"]
+    assert [d.name for d in Context(out_dir=tmp_path).designs(["hexagon127", "square121"])] == ["hexagon127", "square121"]
+
+
+def test_failures_are_recorded_not_hidden(tmp_path):
+    local: dict = {}
+
+    @register("boom", metrics={"x": "mm"}, registry=local)
+    def boom(ctx):
+        raise RuntimeError("exploded on purpose")
+
+    @register("undeclared", metrics={"x": "mm"}, registry=local)
+    def undeclared(ctx):
+        r = Result()
+        r.metric("y", 1.0, "mm")
+        return r
+
+    @register("wrong-unit", metrics={"x": "mm"}, registry=local)
+    def wrong_unit(ctx):
+        r = Result()
+        r.metric("x", 1.0, "px")
+        return r
+
+    @register("needs-missing", metrics={"x": "mm"}, requires=("no_such_module_xyz",), registry=local)
+    def needs(ctx):  # pragma: no cover — must not run
+        raise AssertionError
+
+    ctx = Context(out_dir=tmp_path, progress=False)
+    r = res.execute(local["boom"], ctx)
+    assert r["status"] == "error" and "exploded on purpose" in r["error"]
+    assert res.execute(local["undeclared"], ctx)["status"] == "error"
+    assert res.execute(local["wrong-unit"], ctx)["status"] == "error"
+    r = res.execute(local["needs-missing"], ctx)
+    assert r["status"] == "unavailable" and "no_such_module_xyz" in r["error"]
+    with pytest.raises(RuntimeError):
+        res.execute(local["boom"], ctx, catch=False)
+    with pytest.raises(ValueError, match="registered twice"):
+        register("boom", metrics={"x": "mm"}, registry=local)(lambda ctx: Result())
+    with pytest.raises(ValueError, match="undeclared metric"):
+        register("p", metrics={"x": "mm"}, paper={"y": PaperValue(1, "mm", "")}, registry=local)(boom)
+
+
+def _thresholds_file(tmp_path, text):
+    path = tmp_path / "thresholds.toml"
+    path.write_text(text)
+    return path
+
+
+def test_check_flags_out_of_bounds_missing_and_failed(toy, tmp_path):
+    rec = res.execute(toy, Context(out_dir=tmp_path, quick=True, progress=False))
+    th = res.load_thresholds(_thresholds_file(tmp_path, """
+[toy]
+mean = { min = 0.45, max = 0.55, measured = 0.5, why = "5 sigma" }
+skin_mm = { max = 0.9, why = "deliberately violated" }
+absent = { min = 0, why = "metric the run does not report" }
+"""))
+    vs = res.check({"toy": rec}, th)
+    assert {(v.metric, v.reason) for v in vs} == {("skin_mm", "out of bounds"), ("absent", "metric missing")}
+    text = str(next(v for v in vs if v.metric == "skin_mm"))
+    assert "toy.skin_mm" in text and "<= 0.9" in text and "value 1" in text
+    assert [v.reason for v in res.check({}, th, experiments=["toy"])][0] == "experiment did not run"
+    failed = dict(rec, status="error", error="boom")
+    assert all("status" in v.reason for v in res.check({"toy": failed}, th))
+    full = dict(rec, quick=False)
+    assert all("full run" in v.reason for v in res.check({"toy": full}, th))
+
+
+@pytest.mark.parametrize("text, match", [
+    ("[toy]\nmean = { min = 0.4 }\n", "why"),
+    ("[toy]\nmean = { why = 'x' }\n", "min and/or max"),
+    ("[toy]\nmean = { min = 1, why = 'x', typo = 2 }\n", "unknown key 'typo'"),
+    ("[toy]\nmean = 3\n", "inline table"),
+    ("[toy\n", "thresholds file"),
+])
+def test_malformed_thresholds_are_user_errors(tmp_path, text, match):
+    with pytest.raises(res.ResultsError, match=match):
+        res.load_thresholds(_thresholds_file(tmp_path, text))
+
+
+def test_cli_bench_check_exit_status_and_message(toy, tmp_path, monkeypatch, capsys):
+    good = _thresholds_file(tmp_path, "[toy]\nmean = { min = 0.4, max = 0.6, why = 'x' }\n")
+    monkeypatch.setattr(res, "thresholds_path", lambda: good)
+    out = tmp_path / "out"
+    assert main(["bench", "toy", "--quick", "--check", "--out", str(out), "--no-progress"]) == 0
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    bad_file = _thresholds_file(bad, "[toy]\nmean = { min = 0.9, why = 'regression on purpose' }\n")
+    monkeypatch.setattr(res, "thresholds_path", lambda: bad_file)
+    capsys.readouterr()
+    assert main(["bench", "toy", "--quick", "--check", "--out", str(out), "--no-progress"]) == 1
+    printed = capsys.readouterr().out
+    assert "REGRESSION toy.mean" in printed and ">= 0.9" in printed
+    # user errors: unknown experiment, malformed option, --check without --quick
+    assert main(["bench", "no-such-experiment", "--out", str(out)]) == 2
+    assert main(["bench", "toy", "--out", str(out), "--param", "oops"]) == 2
+    assert main(["bench", "toy", "--check", "--out", str(out), "--no-progress"]) == 2
+    assert main(["bench", "toy", "--out", str(out), "--set", "skin.no_such_key=1"]) == 2
+
+
+def test_cli_param_and_set_reach_the_experiment(toy, tmp_path):
+    out = tmp_path / "o"
+    assert main(["bench", "toy", "--out", str(out), "--param", "n=10", "--set", "skin.thickness_mm=1.5",
+                 "--no-progress"]) == 0
+    rec = json.loads((out / "toy.json").read_text())
+    assert rec["params"] == {"n": 10} and rec["metrics"]["skin_mm"]["value"] == 1.5
+    assert len(rec["tables"]["samples"]) == 3
+
+
+def test_report_has_paper_table_findings_gate_and_figures(toy, tmp_path, monkeypatch):
+    res.execute(toy, Context(out_dir=tmp_path, quick=True, progress=False))
+    th = _thresholds_file(tmp_path / "..", "[toy]\nmean = { min = 0.99, why = 'x' }\n")
+    monkeypatch.setattr(res, "thresholds_path", lambda: th)
+    path = write_report(tmp_path)
+    text = path.read_text()
+    assert "## Paper figure vs this run" in text
+    row = next(line for line in text.splitlines() if line.startswith("| toy | mean |"))
+    assert "| 0.5 |" in row and "E[U(0,1)]" in row
+    assert "the mean is one half" in text and "agrees" in text
+    assert "REGRESSION toy.mean" in text
+    assert "![toy: toy_hist](toy_hist.png)" in text
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(res.ResultsError, match="no experiment JSON"):
+        write_report(tmp_path / "empty")
+    assert main(["report", str(tmp_path / "missing")]) == 2
+    assert render_report({}, tmp_path).startswith("# StereoTacTip benchmark report")
+
+
+def test_sweep_cells_keep_pattern_radius_and_fit_the_gel():
+    from pipeline.design import load_design
+
+    cells = make_cells([0.5, 1.5], [1.80, 2.54, 3.54], ["hexagon", "square", "circular"])
+    assert len(cells) == 18
+    counts = {c.cell_id: c.design().marker_count for c in cells}
+    # the built-in hexagons are reproduced exactly
+    for sep, name in ((1.80, "hexagon217_sep180"), (2.54, "hexagon127"), (3.54, "hexagon61_sep354")):
+        assert counts[Cell("hexagon", sep, 0.5).cell_id] == load_design(name).marker_count
+    for c in cells:
+        d = c.design()
+        assert d.skin.thickness_mm == c.skin_mm and d.pattern.separation_mm == c.separation_mm
+        assert d.pattern_radius_mm() + d.pattern.separation_mm / 2 <= d.gel.radius_mm
+
+
+def test_sweep_is_resumable_and_tabulated(toy, tmp_path, monkeypatch):
+    calls = []
+    original = toy.run
+
+    def counting(ctx):
+        calls.append(ctx.base_design)
+        return original(ctx)
+
+    monkeypatch.setitem(reg._REGISTRY, "toy", reg.Experiment(**{**toy.__dict__, "run": counting}))
+    cells = make_cells([0.5, 1.0], [2.54], ["hexagon", "square"])
+    out = run_sweep("toy", cells, tmp_path, quick=True, workers=1, progress=False)
+    assert len(calls) == 4 and all(r["status"] == "ok" for r in out["rows"])
+    assert {(r["pattern"], r["skin_mm"]) for r in out["rows"]} == {(p, s) for p in ("hexagon", "square") for s in (0.5, 1.0)}
+    by = {r["cell"]: r for r in out["rows"]}
+    assert by[Cell("square", 2.54, 0.5).cell_id]["skin_mm"] == 0.5
+    assert out["csv"].read_text().count("\n") == 5 and out["figure"].is_file()
+    again = run_sweep("toy", cells + make_cells([1.5], [2.54], ["hexagon"]), tmp_path, quick=True, workers=1,
+                      progress=False)
+    assert len(calls) == 5 and len(again["rows"]) == 5  # only the new cell ran
+    assert json.loads(again["json"].read_text())["units"]["skin_mm"] == "mm"
+
+
+# ----- the registry walk -----------------------------------------------------------------------
+
+EXPERIMENTS = reg.all_experiments()
+THRESHOLDS = res.load_thresholds()
+
+
+def test_thresholds_file_names_only_registered_experiments_and_declared_metrics():
+    for exp, table in THRESHOLDS.items():
+        assert exp in EXPERIMENTS, f"thresholds.toml guards unknown experiment {exp!r}"
+        for metric, th in table.items():
+            assert metric in EXPERIMENTS[exp].metrics, f"thresholds.toml: {exp}.{metric} is not declared"
+            if th.measured is not None:
+                assert not th.violated_by(th.measured), f"{exp}.{metric}: measured value violates its own bound"
+
+
+@pytest.mark.parametrize("name", sorted(EXPERIMENTS))
+def test_registered_experiment_invariants(name, tmp_path):
+    exp = EXPERIMENTS[name]
+    assert exp.description, f"{name}: run() needs a docstring (first line = description)"
+    assert exp.metrics and all(isinstance(u, str) and u for u in exp.metrics.values()), f"{name}: declare units"
+    assert "quick" in exp.tags or "full-only" in exp.tags
+    if "quick" in exp.tags:
+        assert THRESHOLDS.get(name), f"{name}: its quick variant has no thresholds in benchmarks/thresholds.toml"
+    for metric, pv in exp.paper.items():
+        assert pv.unit == exp.metrics[metric], f"{name}.{metric}: paper unit differs from the metric's"
+    if "cheap" not in exp.tags:
+        return
+    if not exp.available():
+        pytest.skip(f"{name}: upstream module(s) not landed: {exp.missing_requirements()}")
+    ctx = Context(out_dir=tmp_path, quick=True, seed=0, params=TINY_PARAMS.get(name, {}), progress=False)
+    rec = res.execute(exp, ctx, catch=False)
+    assert rec["status"] == "ok", rec["error"]
+    assert set(rec["metrics"]) == set(exp.metrics), "a cheap run must report every declared metric"
+    for fig in rec["figures"]:
+        assert (tmp_path / fig).stat().st_size > 1000
+
+
+# Tiny settings for the cheap experiments' real runs in this test (kept in one place).
+TINY_PARAMS: dict[str, dict] = {}
