@@ -1,0 +1,98 @@
+"""Triangulation against analytic points (straight rays, no refraction) and cv2.triangulatePoints."""
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.design import load_design
+from pipeline.synthetic import nominal_calibration
+from pipeline.triangulation import TriangulationError, camera_poses, triangulate
+from pipeline.types import MarkerMatches
+
+# Exact pixels: undistortion converges to ~1e-10 (UNDISTORT_CRITERIA) of normalised coordinates, i.e.
+# ~1e-9 mm at 30 mm range; 1e-6 mm leaves ample margin while catching any formula or frame error.
+EXACT_TOL_MM = 1e-6
+
+
+def _project(points, calib):
+    out = []
+    for pose, K, D in zip(camera_poses(calib), (calib.K1, calib.K2), (calib.D1, calib.D2)):
+        cam = np.linalg.inv(pose)
+        rvec, _ = cv2.Rodrigues(cam[:3, :3])
+        px, _ = cv2.projectPoints(points.reshape(-1, 1, 3), rvec, cam[:3, 3], K, D)
+        out.append(px.reshape(-1, 2))
+    return out
+
+
+def _points(rng, n=200, calib=None):
+    # a box in front of the cameras (at z = -30 mm), 5-35 mm away, kept where both images see it
+    pts = np.column_stack([rng.uniform(-8, 8, 3 * n), rng.uniform(-8, 8, 3 * n), rng.uniform(-25, 5, 3 * n)])
+    calib = calib or nominal_calibration(load_design("hexagon127"))
+    left, right = _project(pts, calib)
+    inside = np.all((left >= 0) & (left < [640, 480]) & (right >= 0) & (right < [640, 480]), axis=1)
+    return pts[inside][:n]
+
+
+@pytest.mark.parametrize("design_name", ["hexagon127", "circular217_dome"])
+@pytest.mark.parametrize("method", ["general", "disparity"])
+def test_triangulate_analytic_points(design_name, method):
+    design = load_design(design_name)
+    calib = nominal_calibration(design)
+    pts = _points(np.random.default_rng(1), calib=calib)
+    left, right = _project(pts, calib)
+    cloud = triangulate(MarkerMatches(np.arange(len(pts)), left, right), calib, method=method)
+    assert np.array_equal(cloud.ids, np.arange(len(pts)))
+    assert np.max(np.abs(cloud.xyz_mm - pts)) < EXACT_TOL_MM
+
+
+def test_general_matches_cv2_triangulate_points_with_noise():
+    calib = nominal_calibration(load_design("hexagon127"))
+    rng = np.random.default_rng(2)
+    pts = _points(rng)
+    left, right = _project(pts, calib)
+    left = left + rng.normal(0, 0.2, left.shape)
+    right = right + rng.normal(0, 0.2, right.shape)
+    ours = triangulate(MarkerMatches(np.arange(len(pts)), left, right), calib).xyz_mm
+    nl = cv2.undistortPoints(left.reshape(-1, 1, 2), calib.K1, calib.D1).reshape(-1, 2)
+    nr = cv2.undistortPoints(right.reshape(-1, 1, 2), calib.K2, calib.D2).reshape(-1, 2)
+    P1 = np.hstack([np.eye(3), np.zeros((3, 1))])
+    P2 = np.hstack([calib.R, calib.T.reshape(3, 1)])
+    X = cv2.triangulatePoints(P1, P2, nl.T, nr.T)
+    X = (X[:3] / X[3]).T
+    theirs = X @ calib.sensor_from_left[:3, :3].T + calib.sensor_from_left[:3, 3]
+    # Midpoint and DLT are different estimators: with noise they differ by a fraction of the error
+    # the noise itself causes (both are first-order unbiased), and agree exactly without noise.
+    diff = np.linalg.norm(ours - theirs, axis=1)
+    err = np.linalg.norm(ours - pts, axis=1)
+    err_dlt = np.linalg.norm(theirs - pts, axis=1)
+    print(f"median |midpoint - DLT| {np.median(diff):.4f} mm, median error {np.median(err):.4f} mm")
+    assert 0.005 < np.median(err) < 0.2  # noise really was applied and stays at the expected scale
+    assert np.median(diff) < 0.25 * np.median(err)
+    assert abs(np.median(err) - np.median(err_dlt)) < 0.1 * np.median(err)
+
+
+def test_unknown_method_and_empty_input():
+    calib = nominal_calibration(load_design("hexagon127"))
+    m = MarkerMatches(np.empty(0, np.int64), np.empty((0, 2)), np.empty((0, 2)))
+    assert triangulate(m, calib).xyz_mm.shape == (0, 3)
+    assert triangulate(m, calib, method="disparity").xyz_mm.shape == (0, 3)
+    with pytest.raises(TriangulationError, match="unknown method"):
+        triangulate(m, calib, method="magic")
+
+
+def test_parallel_rays_are_dropped_not_nan():
+    calib = nominal_calibration(load_design("hexagon127"))
+    pts = _points(np.random.default_rng(3), 5)
+    left, right = _project(pts, calib)
+    # marker 4: the right pixel is replaced by the direction parallel to the left ray (point at infinity)
+    far = np.linalg.inv(camera_poses(calib)[0])
+    ray_dir = (np.linalg.inv(calib.K1) @ np.array([*cv2.undistortPoints(left[4:5].reshape(1, 1, 2), calib.K1,
+                                                                         calib.D1, P=calib.K1).ravel(), 1.0]))
+    d_sensor = calib.sensor_from_left[:3, :3] @ ray_dir
+    inf_pt = camera_poses(calib)[1][:3, 3] + 1e9 * d_sensor
+    right[4] = _project(inf_pt.reshape(1, 3), calib)[1][0]
+    del far
+    cloud = triangulate(MarkerMatches(np.arange(5), left, right), calib)
+    assert np.all(np.isfinite(cloud.xyz_mm))
+    assert set(cloud.ids.tolist()) <= set(range(5))
+    assert np.max(np.abs(cloud.xyz_mm[:4] - pts[:4])) < EXACT_TOL_MM
