@@ -1,0 +1,1 @@
+"""Packaged world-relief asset for the terrain demonstration (see PROVENANCE.md)."""

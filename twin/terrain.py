@@ -1,0 +1,662 @@
+"""The terrain demonstration's world relief map and tap-scan planning (twin side).
+
+Paper, "Experiments III": a 320 x 160 x 9.7 mm printed world relief (land from a DEM, ocean floor
+flattened to -3000 m along the coastline), scanned by a robot tapping a StereoTacTip in a zigzag
+with 15 mm steps over nine regions.
+
+Map frame (mm), the one every function here uses unless it says otherwise
+------------------------------------------------------------------------
+Equirectangular (EPSG:4326 plate carree), 320 mm for 360 deg of longitude and 160 mm for 180 deg of
+latitude (the same 8/9 mm per degree on both axes)::
+
+    x_mm = ((lon_deg - 180) mod 360) * 320 / 360      # 0 at the antimeridian, growing eastward
+    y_mm = (lat_deg + 90) * 160 / 180                 # 0 at the south pole, growing northward
+
+so the origin is the corner (180 deg E = 180 deg W, 90 deg S) named by the paper, x runs east from the
+antimeridian through Greenwich (x = 160 mm) back to the antimeridian (x = 320 mm), i.e. the ordinary
+[-180, 180) EPSG:4326 world map with its lower-left corner at the origin
+(``(lon - 180) mod 360 == (lon + 180) mod 360``). The frame is right handed with z up.
+
+Vertical scale. The paper gives three numbers: the model is 9.7 mm tall, the ocean floor is flattened
+to -3000 m, and the global origin sits at 2 mm "corresponding to an altitude of 0 m". A single linear
+scale cannot honour all three with the ocean floor on the bottom of the print (2 mm for 3000 m puts
+Everest at 7.9 mm, not 9.7 mm). We take the one linear scale that maps the flattened ocean floor to
+0 mm and sea level to 2 mm, ``1 mm = 1500 m`` (:data:`M_PER_MM`), and put a solid base slab of
+:data:`BASE_MM` = 9.7 - (2 + 8848/1500) = 1.80 mm under the ocean floor, so that a DEM reaching
+Everest's 8848 m prints exactly 9.7 mm tall. Heights ``z_mm`` of the map frame are measured from the
+ocean floor (top of the base slab): ocean 0 mm, sea level 2 mm, Everest 7.90 mm.
+
+Global frame (the paper's O_global): the map frame shifted down by 2 mm, so z_global = 0 is sea
+level: ``z_global_mm = z_mm - SEA_LEVEL_MM``. Taps go from z_global = 8 mm down to z_global = 0 mm.
+
+Land is decided by a real land mask (``global_land_mask``, 1 km GLOBE), not by ``z > 0``: the Caspian
+and the Dead Sea are land in that mask and keep their (negative) DEM relief, the Black Sea is sea.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import math
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from pipeline.types import DataError, HeightMap
+
+__all__ = [
+    "MAP_WIDTH_MM", "MAP_DEPTH_MM", "MAP_HEIGHT_MM", "SEA_LEVEL_MM", "M_PER_MM", "OCEAN_FLOOR_M",
+    "BASE_MM", "MM_PER_DEG", "TerrainFileError", "Dem", "TerrainMap", "Region", "REGIONS",
+    "load_etopo", "resample_dem", "land_mask", "relief_from_dem", "load_terrain_map",
+    "x_mm_from_lon", "y_mm_from_lat", "lon_from_x_mm", "lat_from_y_mm", "z_mm_from_elevation_m",
+    "elevation_m_from_z_mm", "region", "region_names", "plan_scan", "tap_indenter",
+]
+
+# ----- the map's dimensions and scales ------------------------------------------------------
+
+MAP_WIDTH_MM = 320.0          # 360 deg of longitude
+MAP_DEPTH_MM = 160.0          # 180 deg of latitude
+MAP_HEIGHT_MM = 9.7           # the printed model's total height, base slab included
+MM_PER_DEG = MAP_WIDTH_MM / 360.0   # = MAP_DEPTH_MM / 180 = 0.8889 mm per degree on both axes
+OCEAN_FLOOR_M = -3000.0       # the paper's flattened ocean floor
+SEA_LEVEL_MM = 2.0            # height of 0 m above the ocean floor (the paper's global origin)
+M_PER_MM = (0.0 - OCEAN_FLOOR_M) / SEA_LEVEL_MM   # 1500 m per mm: -3000 m -> 0 mm, 0 m -> 2 mm
+EVEREST_M = 8848.0
+BASE_MM = MAP_HEIGHT_MM - (SEA_LEVEL_MM + EVEREST_M / M_PER_MM)   # 1.80 mm slab under the ocean floor
+
+ASSET_PACKAGE = "sim_assets.terrain"
+ASSET_NAME = "relief.npz"
+
+# variable names of the relief in the ETOPO family (Ferret ETOPO5/20/60: ROSE; ETOPO1/2022: z)
+_RELIEF_VARIABLES = ("ROSE", "z", "elevation", "Band1", "topo", "altitude", "height")
+
+
+class TerrainFileError(DataError):
+    """A DEM file is missing, corrupt, truncated, or lacks a relief variable / lat-lon axes."""
+
+
+# ----- coordinate conversions ---------------------------------------------------------------
+
+def x_mm_from_lon(lon_deg) -> np.ndarray:
+    """Map x (mm, 0..320) of a longitude (deg, any branch): ``((lon - 180) mod 360) * 320/360``."""
+    return np.mod(np.asarray(lon_deg, dtype=np.float64) - 180.0, 360.0) * MM_PER_DEG
+
+
+def y_mm_from_lat(lat_deg) -> np.ndarray:
+    """Map y (mm, 0..160) of a latitude (deg): ``(lat + 90) * 160/180``."""
+    return (np.asarray(lat_deg, dtype=np.float64) + 90.0) * MM_PER_DEG
+
+
+def lon_from_x_mm(x_mm) -> np.ndarray:
+    """Longitude in [-180, 180) deg of a map x (mm)."""
+    return np.mod(np.asarray(x_mm, dtype=np.float64) / MM_PER_DEG, 360.0) - 180.0
+
+
+def lat_from_y_mm(y_mm) -> np.ndarray:
+    """Latitude (deg) of a map y (mm)."""
+    return np.asarray(y_mm, dtype=np.float64) / MM_PER_DEG - 90.0
+
+
+def z_mm_from_elevation_m(elevation_m) -> np.ndarray:
+    """Map height (mm above the ocean floor) of an elevation (m): ``2 + h / 1500``."""
+    return SEA_LEVEL_MM + np.asarray(elevation_m, dtype=np.float64) / M_PER_MM
+
+
+def elevation_m_from_z_mm(z_mm) -> np.ndarray:
+    """Elevation (m) of a map height (mm above the ocean floor)."""
+    return (np.asarray(z_mm, dtype=np.float64) - SEA_LEVEL_MM) * M_PER_MM
+
+
+# ----- DEM loading --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Dem:
+    """A regular latitude-longitude elevation grid.
+
+    Parameters
+    ----------
+    lat_deg : (H,) float64, strictly increasing (south to north), cell centres
+    lon_deg : (W,) float64, strictly increasing within [-180, 180), cell centres, no repeated wrap column
+    elevation_m : (H, W) float32, metres above sea level; row i is lat_deg[i], column j lon_deg[j]
+    source : where it came from (file name), for messages and provenance
+    """
+
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    elevation_m: np.ndarray
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        lat = np.asarray(self.lat_deg, dtype=np.float64)
+        lon = np.asarray(self.lon_deg, dtype=np.float64)
+        z = np.asarray(self.elevation_m, dtype=np.float32)
+        if lat.ndim != 1 or lon.ndim != 1 or z.shape != (len(lat), len(lon)):
+            raise TerrainFileError(f"{self.source or 'DEM'}: elevation shape {z.shape} does not match "
+                                   f"the axes ({len(lat)} latitudes, {len(lon)} longitudes)")
+        if len(lat) < 2 or len(lon) < 2 or np.any(np.diff(lat) <= 0) or np.any(np.diff(lon) <= 0):
+            raise TerrainFileError(f"{self.source or 'DEM'}: latitude/longitude axes must be strictly increasing")
+        for name, value in (("lat_deg", lat), ("lon_deg", lon), ("elevation_m", z)):
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    @property
+    def step_deg(self) -> float:
+        """Mean longitude spacing (deg)."""
+        return float(np.mean(np.diff(self.lon_deg)))
+
+
+def load_etopo(path: str | Path, *, variable: str | None = None) -> Dem:
+    """Read an ETOPO-family netCDF relief grid into a :class:`Dem`.
+
+    Parameters
+    ----------
+    path : a netCDF-3 file (Ferret ETOPO5/20/60, ETOPO1) read with scipy; a netCDF-4/HDF5 file
+        (ETOPO 2022) is read with ``h5py`` when that package is installed.
+    variable : name of the relief variable; by default the first of ROSE, z, elevation, Band1, ...
+
+    Returns
+    -------
+    Dem with latitudes south to north and longitudes wrapped into [-180, 180), sorted, the
+    repeated wrap column (etopo20 repeats one) dropped. Missing values (``_FillValue`` /
+    ``missing_value``) become NaN.
+
+    Raises
+    ------
+    TerrainFileError
+        naming the file: missing, not netCDF, truncated (data shorter than its header says),
+        no relief variable, no 1-D latitude/longitude axes, or no finite value at all.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TerrainFileError(f"DEM file {path} does not exist")
+    with open(path, "rb") as fh:
+        magic = fh.read(8)
+    if magic[:3] == b"CDF":
+        lat, lon, z, fill = _read_netcdf3(path, variable)
+    elif magic == b"\x89HDF\r\n\x1a\n":
+        lat, lon, z, fill = _read_hdf5(path, variable)
+    else:
+        raise TerrainFileError(f"DEM file {path}: not a netCDF file (first bytes {magic[:4]!r})")
+    z = np.array(z, dtype=np.float32)
+    for f in fill:
+        if f is not None and np.isfinite(f):
+            z[z == np.float32(f)] = np.nan
+    z[np.abs(z) > 1e5] = np.nan  # -1e34 style fills without an attribute
+    if not np.any(np.isfinite(z)):
+        raise TerrainFileError(f"DEM file {path}: relief variable holds no finite value")
+    lat = np.asarray(lat, dtype=np.float64)
+    lon = np.asarray(lon, dtype=np.float64)
+    if z.shape != (len(lat), len(lon)):
+        if z.shape == (len(lon), len(lat)):
+            z = z.T
+        else:
+            raise TerrainFileError(f"DEM file {path}: relief shape {z.shape} does not match the axes "
+                                   f"({len(lat)} latitudes, {len(lon)} longitudes)")
+    if lat[0] > lat[-1]:
+        lat, z = lat[::-1], z[::-1]
+    lon_w = np.mod(lon + 180.0, 360.0) - 180.0
+    lon_w = np.round(lon_w, 9)
+    order = np.argsort(lon_w, kind="stable")
+    lon_w, z = lon_w[order], z[:, order]
+    d = np.diff(lon_w)
+    # drop the repeated wrap column (etopo20's 380.1666307 deg is 20.1666667 deg to 4e-5 deg)
+    keep = np.concatenate([[True], d > 0.01 * np.median(d)]) if len(d) else np.ones(1, bool)
+    return Dem(lat, lon_w[keep], z[:, keep], source=str(path))
+
+
+def _pick_variable(names: Iterable[str], variable: str | None, path: Path) -> str:
+    names = list(names)
+    if variable is not None:
+        if variable not in names:
+            raise TerrainFileError(f"DEM file {path}: no variable {variable!r} (has {', '.join(names)})")
+        return variable
+    for cand in _RELIEF_VARIABLES:
+        if cand in names:
+            return cand
+    raise TerrainFileError(f"DEM file {path}: no relief variable (looked for {', '.join(_RELIEF_VARIABLES)}; "
+                           f"file has {', '.join(names) or 'none'})")
+
+
+def _axis_kind(name: str, attrs: dict) -> str | None:
+    units = attrs.get("units", b"")
+    units = units.decode("latin-1") if isinstance(units, bytes) else str(units)
+    units, lname = units.lower(), name.lower()
+    if "degrees_north" in units or "degree_north" in units or lname.startswith("lat") or lname.endswith("y"):
+        return "lat"
+    if "degrees_east" in units or "degree_east" in units or lname.startswith("lon") or "x" in lname:
+        return "lon"
+    return None
+
+
+def _read_netcdf3(path: Path, variable: str | None):
+    from scipy.io import netcdf_file
+
+    try:
+        with netcdf_file(str(path), "r", mmap=False) as f:
+            name = _pick_variable(f.variables, variable, path)
+            var = f.variables[name]
+            if var.data.ndim != 2:
+                raise TerrainFileError(f"DEM file {path}: variable {name!r} is {var.data.ndim}-D, expected 2-D (lat, lon)")
+            axes = {}
+            for dim in var.dimensions:
+                if dim not in f.variables:
+                    raise TerrainFileError(f"DEM file {path}: dimension {dim!r} of {name!r} has no coordinate variable")
+                kind = _axis_kind(dim, f.variables[dim]._attributes)
+                if kind is None:
+                    raise TerrainFileError(f"DEM file {path}: cannot tell whether axis {dim!r} is latitude or longitude")
+                axes[kind] = np.array(f.variables[dim].data, dtype=np.float64)
+            if set(axes) != {"lat", "lon"}:
+                raise TerrainFileError(f"DEM file {path}: variable {name!r} needs one latitude and one longitude axis")
+            z = np.array(var.data, dtype=np.float32)
+            if _axis_kind(var.dimensions[0], f.variables[var.dimensions[0]]._attributes) == "lon":
+                z = z.T
+            fill = [var._attributes.get("_FillValue"), var._attributes.get("missing_value")]
+            fill = [float(np.asarray(v).ravel()[0]) if v is not None else None for v in fill]
+    except TerrainFileError:
+        raise
+    except (TypeError, ValueError, OSError, IndexError, KeyError, EOFError, AttributeError) as exc:
+        raise TerrainFileError(f"DEM file {path}: corrupt or truncated netCDF ({type(exc).__name__}: {exc})") from None
+    return axes["lat"], axes["lon"], z, fill
+
+
+def _read_hdf5(path: Path, variable: str | None):
+    try:
+        import h5py  # optional: only for netCDF-4 grids such as ETOPO 2022
+    except ImportError:
+        raise TerrainFileError(f"DEM file {path}: netCDF-4/HDF5 needs the 'h5py' package "
+                               "(pip install h5py), or convert it to netCDF-3 first") from None
+    try:
+        with h5py.File(path, "r") as f:
+            name = _pick_variable([k for k in f.keys() if getattr(f[k], "ndim", 0) == 2], variable, path)
+            lat_name = next((k for k in ("lat", "latitude", "y") if k in f), None)
+            lon_name = next((k for k in ("lon", "longitude", "x") if k in f), None)
+            if lat_name is None or lon_name is None:
+                raise TerrainFileError(f"DEM file {path}: no lat/lon coordinate variables")
+            z = np.asarray(f[name][...], dtype=np.float32)
+            fill = [f[name].attrs.get("_FillValue"), f[name].attrs.get("missing_value")]
+            fill = [float(np.asarray(v).ravel()[0]) if v is not None else None for v in fill]
+            return np.asarray(f[lat_name][...]), np.asarray(f[lon_name][...]), z, fill
+    except TerrainFileError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise TerrainFileError(f"DEM file {path}: corrupt or truncated HDF5 ({type(exc).__name__}: {exc})") from None
+
+
+# ----- resampling and land mask --------------------------------------------------------------
+
+def _cell_centres(lo: float, hi: float, step: float) -> np.ndarray:
+    n = int(round((hi - lo) / step))
+    return lo + step * (np.arange(n) + 0.5)
+
+
+def _bilinear_periodic(dem: Dem, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    """Bilinear DEM value at points (deg), periodic in longitude, clamped in latitude; NaN-aware."""
+    la, lo, z = dem.lat_deg, dem.lon_deg, dem.elevation_m.astype(np.float64)
+    W = len(lo)
+    # longitude: extend periodically by one column either side
+    lo_ext = np.concatenate([[lo[-1] - 360.0], lo, [lo[0] + 360.0]])
+    z_ext = np.concatenate([z[:, -1:], z, z[:, :1]], axis=1)
+    lon = np.mod(lon - lo_ext[0], 360.0) + lo_ext[0]
+    j = np.clip(np.searchsorted(lo_ext, lon, side="right") - 1, 0, W)
+    tx = (lon - lo_ext[j]) / (lo_ext[j + 1] - lo_ext[j])
+    latc = np.clip(lat, la[0], la[-1])
+    i = np.clip(np.searchsorted(la, latc, side="right") - 1, 0, len(la) - 2)
+    ty = (latc - la[i]) / (la[i + 1] - la[i])
+    v00, v01 = z_ext[i, j], z_ext[i, j + 1]
+    v10, v11 = z_ext[i + 1, j], z_ext[i + 1, j + 1]
+    return (1 - ty) * ((1 - tx) * v00 + tx * v01) + ty * ((1 - tx) * v10 + tx * v11)
+
+
+def resample_dem(dem: Dem, step_deg: float, *, progress: bool = False) -> Dem:
+    """Resample to the global cell-centred grid of ``step_deg`` (lon -180.., lat -90..).
+
+    Each output cell is the mean of k x k bilinear samples of the source inside it, k = the number
+    of source cells per output cell rounded up (k = 1 when upsampling): an area mean when
+    downsampling (e.g. ETOPO 2022 30" -> 0.2 deg), plain bilinear interpolation when upsampling.
+    """
+    if not 0 < step_deg <= 10:
+        raise TerrainFileError(f"step_deg must be in (0, 10], got {step_deg!r}")
+    lat = _cell_centres(-90.0, 90.0, step_deg)
+    lon = _cell_centres(-180.0, 180.0, step_deg)
+    k = max(1, int(math.ceil(step_deg / dem.step_deg - 1e-9)))
+    off = (np.arange(k) + 0.5) / k * step_deg - step_deg / 2
+    out = np.zeros((len(lat), len(lon)), dtype=np.float64)
+    rows = range(len(lat))
+    if progress:
+        from tqdm import tqdm
+        rows = tqdm(rows, desc="resample DEM", unit="row", leave=False)
+    LO = (lon[None, :] + off[:, None]).ravel()
+    for r in rows:
+        acc = np.zeros(len(lon))
+        for dy in off:
+            v = _bilinear_periodic(dem, np.full(LO.shape, lat[r] + dy), LO)
+            acc += v.reshape(k, len(lon)).mean(axis=0)
+        out[r] = acc / k
+    return Dem(lat, lon, out.astype(np.float32), source=f"{dem.source} resampled to {step_deg} deg")
+
+
+def land_mask(lat_deg: np.ndarray, lon_deg: np.ndarray, *, subsamples: int = 3) -> np.ndarray:
+    """Land (True) / sea of grid cells centred on ``lat_deg`` (H,) x ``lon_deg`` (W,), from GLOBE.
+
+    A cell is land when at least half of ``subsamples``^2 points spread over it are land in the
+    1 km ``global_land_mask`` (majority vote, so a coastline cell goes to whichever side covers more
+    of it). Inland seas the mask calls land (Caspian) stay land; the Black Sea is sea.
+    """
+    from global_land_mask import globe
+
+    lat = np.asarray(lat_deg, dtype=np.float64)
+    lon = np.asarray(lon_deg, dtype=np.float64)
+    dlat = float(np.mean(np.diff(lat))) if len(lat) > 1 else 0.0
+    dlon = float(np.mean(np.diff(lon))) if len(lon) > 1 else 0.0
+    off = (np.arange(subsamples) + 0.5) / subsamples - 0.5
+    votes = np.zeros((len(lat), len(lon)), dtype=np.int32)
+    for oy in off:
+        la = np.clip(lat + oy * dlat, -89.999, 89.999)
+        for ox in off:
+            lo = np.mod(lon + ox * dlon + 180.0, 360.0) - 180.0
+            LA, LO = np.meshgrid(la, np.clip(lo, -180.0, 179.999), indexing="ij")
+            votes += globe.is_land(LA, LO)
+    return votes * 2 >= subsamples * subsamples
+
+
+# ----- the relief map -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TerrainMap:
+    """The printed world relief in the map frame (module docstring).
+
+    Parameters
+    ----------
+    lat_deg : (H,) cell-centre latitudes, south to north, regular
+    lon_deg : (W,) cell-centre longitudes in [-180, 180), west to east, regular
+    elevation_m : (H, W) float32, land relief in metres; ocean cells hold exactly OCEAN_FLOOR_M
+    land : (H, W) bool land mask used for the flattening
+    source : provenance string
+    """
+
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    elevation_m: np.ndarray
+    land: np.ndarray
+    source: str = ""
+
+    # --- grids in mm ---
+    @property
+    def x_mm(self) -> np.ndarray:
+        """(W,) cell-centre x (mm), increasing: longitudes in [-180, 180) map to x in [0, 320)."""
+        return x_mm_from_lon(self.lon_deg)
+
+    @property
+    def y_mm(self) -> np.ndarray:
+        return y_mm_from_lat(self.lat_deg)
+
+    @property
+    def z_mm(self) -> np.ndarray:
+        """(H, W) float64 map heights above the ocean floor (mm): ocean 0, sea level 2."""
+        return z_mm_from_elevation_m(self.elevation_m)
+
+    @property
+    def step_mm(self) -> float:
+        return float(np.mean(np.diff(self.x_mm)))
+
+    def height_map(self, *, frame: str = "map") -> HeightMap:
+        """The whole relief as a :class:`HeightMap`: ``frame='map'`` heights above the ocean floor,
+        ``frame='global'`` heights above sea level (the paper's O_global, z = z_map - 2 mm)."""
+        z = self.z_mm - (SEA_LEVEL_MM if frame == "global" else 0.0)
+        if frame not in ("map", "global"):
+            raise ValueError(f"frame must be 'map' or 'global', got {frame!r}")
+        return HeightMap(self.x_mm, self.y_mm, z)
+
+    def sample_z_mm(self, x_mm, y_mm, *, frame: str = "map") -> np.ndarray:
+        """Bilinear map height at map points (mm); periodic in x (the map wraps at the antimeridian
+        only in the DEM sense: points off the print are still given the relief they would have)."""
+        x = np.asarray(x_mm, dtype=np.float64)
+        y = np.asarray(y_mm, dtype=np.float64)
+        dem = Dem(self.lat_deg, self.lon_deg, self.elevation_m, self.source)
+        h = _bilinear_periodic(dem, lat_from_y_mm(y).ravel(), lon_from_x_mm(x).ravel()).reshape(np.broadcast(x, y).shape)
+        z = z_mm_from_elevation_m(h)
+        return z - SEA_LEVEL_MM if frame == "global" else z
+
+    def crop(self, box_mm: tuple[float, float, float, float], *, frame: str = "global") -> HeightMap:
+        """The relief inside ``(x0, x1, y0, y1)`` mm on the map's own grid (no interpolation)."""
+        x0, x1, y0, y1 = box_mm
+        xs, ys = self.x_mm, self.y_mm
+        jx = np.flatnonzero((xs >= x0) & (xs <= x1))
+        iy = np.flatnonzero((ys >= y0) & (ys <= y1))
+        if len(jx) == 0 or len(iy) == 0:
+            raise ValueError(f"box {box_mm} mm holds no map cell")
+        z = self.z_mm[np.ix_(iy, jx)] - (SEA_LEVEL_MM if frame == "global" else 0.0)
+        return HeightMap(xs[jx], ys[iy], z)
+
+    # --- persistence (the packaged asset) ---
+    def save_npz(self, path: str | Path, *, extra: dict | None = None) -> None:
+        """Compact asset: int16 metres (ocean = -3000), packed land bits, the grid definition."""
+        np.savez_compressed(
+            path,
+            elevation_m=np.round(self.elevation_m).astype(np.int16),
+            land_bits=np.packbits(self.land, axis=None),
+            shape=np.array(self.land.shape, dtype=np.int64),
+            lat0_deg=np.float64(self.lat_deg[0]), lon0_deg=np.float64(self.lon_deg[0]),
+            step_deg=np.float64(np.mean(np.diff(self.lon_deg))),
+            source=np.array(self.source),
+            **{k: np.array(v) for k, v in (extra or {}).items()},
+        )
+
+    @classmethod
+    def load_npz(cls, file) -> "TerrainMap":
+        try:
+            with np.load(file, allow_pickle=False) as f:
+                shape = tuple(int(v) for v in f["shape"])
+                step = float(f["step_deg"])
+                lat = float(f["lat0_deg"]) + step * np.arange(shape[0])
+                lon = float(f["lon0_deg"]) + step * np.arange(shape[1])
+                land = np.unpackbits(f["land_bits"], count=shape[0] * shape[1]).reshape(shape).astype(bool)
+                elev = f["elevation_m"].astype(np.float32)
+                src = str(f["source"])
+        except (OSError, KeyError, ValueError) as exc:
+            raise TerrainFileError(f"terrain asset {file}: unreadable ({type(exc).__name__}: {exc})") from None
+        return cls(lat, lon, elev, land, src)
+
+    # --- export ---
+    def to_mesh(self, *, stride: int = 1, base_mm: float = BASE_MM):
+        """Watertight trimesh of the print: the relief on top (map frame), a base slab below z = 0
+        down to ``-base_mm``, vertical walls on the four sides. ``stride`` decimates the grid."""
+        import trimesh
+
+        x, y, z = self.x_mm[::stride], self.y_mm[::stride], self.z_mm[::stride, ::stride]
+        # stretch the outermost cell centres onto the print's edges so the mesh is 320 x 160
+        x = x.copy(); y = y.copy()
+        x[0], x[-1], y[0], y[-1] = 0.0, MAP_WIDTH_MM, 0.0, MAP_DEPTH_MM
+        return heightfield_mesh(x, y, z, bottom_mm=-base_mm)
+
+    def to_stl(self, path: str | Path, *, stride: int = 2, base_mm: float = BASE_MM) -> Path:
+        """Write the printable binary STL (mm, map frame with the base slab below z = 0)."""
+        mesh = self.to_mesh(stride=stride, base_mm=base_mm)
+        path = Path(path)
+        mesh.export(str(path))
+        return path
+
+
+def heightfield_mesh(x_mm: np.ndarray, y_mm: np.ndarray, z_mm: np.ndarray, *, bottom_mm: float):
+    """Watertight solid under a height field: top grid, flat bottom at ``bottom_mm``, four walls.
+
+    x (W,), y (H,) increasing; z (H, W). Faces are oriented outward (top normals +z)."""
+    import trimesh
+
+    H, W = z_mm.shape
+    X, Y = np.meshgrid(x_mm, y_mm)
+    top = np.column_stack([X.ravel(), Y.ravel(), z_mm.ravel()])
+    idx = np.arange(H * W).reshape(H, W)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    faces = [np.column_stack([a, b, c]), np.column_stack([a, c, d])]
+    # boundary ring of the top, counter-clockwise seen from +z
+    ring = np.concatenate([idx[0, :], idx[1:, -1], idx[-1, -2::-1], idx[-2:0:-1, 0]])
+    n_top = len(top)
+    bottom = top[ring].copy()
+    bottom[:, 2] = bottom_mm
+    ring_b = n_top + np.arange(len(ring))
+    centre = n_top + len(ring)
+    verts = np.vstack([top, bottom, [[x_mm.mean(), y_mm.mean(), bottom_mm]]])
+    nxt = np.roll(np.arange(len(ring)), -1)
+    # walls: outward for a CCW ring
+    faces.append(np.column_stack([ring, ring_b, ring_b[nxt]]))
+    faces.append(np.column_stack([ring, ring_b[nxt], ring[nxt]]))
+    # bottom fan, facing -z (clockwise seen from +z)
+    faces.append(np.column_stack([np.full(len(ring), centre), ring_b[nxt], ring_b]))
+    return trimesh.Trimesh(vertices=verts, faces=np.vstack(faces), process=False)
+
+
+def relief_from_dem(dem: Dem, *, step_deg: float = 0.2, mask: np.ndarray | None = None,
+                    progress: bool = False) -> TerrainMap:
+    """Build the relief map: resample to ``step_deg``, keep land, flatten the sea to -3000 m.
+
+    Land cells keep the DEM value clipped to [-3000 m, +inf) (a coarse DEM can put ocean depths
+    under mask-land along steep coasts; the clip keeps them no lower than the ocean floor). NaN land
+    cells (missing data) become sea level. ``mask`` overrides the GLOBE land mask (tests).
+    """
+    grid = resample_dem(dem, step_deg, progress=progress)
+    land = land_mask(grid.lat_deg, grid.lon_deg) if mask is None else np.asarray(mask, dtype=bool)
+    if land.shape != grid.elevation_m.shape:
+        raise ValueError(f"mask shape {land.shape} != grid shape {grid.elevation_m.shape}")
+    elev = np.nan_to_num(grid.elevation_m.astype(np.float64), nan=0.0)
+    elev = np.where(land, np.maximum(elev, OCEAN_FLOOR_M), OCEAN_FLOOR_M)
+    return TerrainMap(grid.lat_deg, grid.lon_deg, elev.astype(np.float32), land, source=dem.source)
+
+
+_CACHE: dict[str, TerrainMap] = {}
+
+
+def load_terrain_map() -> TerrainMap:
+    """The packaged relief (``sim_assets/terrain/relief.npz``, see its PROVENANCE.md), cached."""
+    if ASSET_NAME not in _CACHE:
+        ref = resources.files(ASSET_PACKAGE).joinpath(ASSET_NAME)
+        if not ref.is_file():
+            raise TerrainFileError(f"terrain asset {ASSET_PACKAGE}/{ASSET_NAME} is missing; regenerate it with "
+                                   "python sim_assets/terrain/make_relief.py ETOPO_FILE")
+        with ref.open("rb") as fh:
+            _CACHE[ASSET_NAME] = TerrainMap.load_npz(io.BytesIO(fh.read()))
+    return _CACHE[ASSET_NAME]
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# ----- regions ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Region:
+    """A scan region: a latitude/longitude box (deg, lon in [-180, 180), lon_min < lon_max) and the
+    kind of feature the paper discusses there."""
+
+    key: str
+    name: str
+    lat_min: float
+    lat_max: float
+    lon_min: float
+    lon_max: float
+    kind: str        # mountains | sea | channel | all
+
+    def box_mm(self) -> tuple[float, float, float, float]:
+        """(x0, x1, y0, y1) in the map frame, mm."""
+        return (float(x_mm_from_lon(self.lon_min)), float(x_mm_from_lon(self.lon_max)) if self.lon_max < 180 else MAP_WIDTH_MM,
+                float(y_mm_from_lat(self.lat_min)), float(y_mm_from_lat(self.lat_max)))
+
+
+# The paper's nine regions (Fig. "map" (c) i-ix); boxes chosen to frame each feature with some
+# surrounding land/sea, numbered as in the paper.
+REGIONS: dict[str, Region] = {r.key: r for r in (
+    Region("rocky", "(i) Rocky Mountains", 32.0, 58.0, -128.0, -100.0, "mountains"),
+    Region("gulf_of_mexico", "(ii) Gulf of Mexico", 16.0, 32.0, -100.0, -78.0, "sea"),
+    Region("andes", "(iii) Andes", -45.0, -5.0, -82.0, -58.0, "mountains"),
+    Region("drake", "(iv) Drake Passage", -70.0, -50.0, -78.0, -52.0, "channel"),
+    Region("english_channel", "(v) English Channel", 46.0, 54.0, -8.0, 4.0, "channel"),
+    Region("mozambique", "(vi) Mozambique Channel", -28.0, -10.0, 30.0, 52.0, "channel"),
+    Region("black_caspian", "(vii) Black and Caspian Seas", 35.0, 48.0, 26.0, 56.0, "sea"),
+    Region("himalaya", "(viii) Himalaya", 24.0, 40.0, 70.0, 98.0, "mountains"),
+    Region("okhotsk", "(ix) Sea of Okhotsk", 42.0, 64.0, 132.0, 166.0, "sea"),
+)}
+WHOLE_MAP = Region("world", "Whole map", -90.0, 90.0, -180.0, 180.0, "all")
+
+
+def region_names() -> list[str]:
+    return list(REGIONS)
+
+
+def region(key: str) -> Region:
+    """Look up a region by key (``rocky``, ``andes``, ... or ``world``)."""
+    if key == WHOLE_MAP.key:
+        return WHOLE_MAP
+    try:
+        return REGIONS[key]
+    except KeyError:
+        raise DataError(f"unknown terrain region {key!r} (choose from {', '.join(REGIONS)}, world)") from None
+
+
+# ----- scan planning ------------------------------------------------------------------------
+
+SCAN_STEP_MM = 15.0      # the paper's horizontal step between taps
+APPROACH_Z_MM = 8.0      # start height of every tap above sea level (global z), clears Everest (5.9 mm)
+TAP_Z_MM = 0.0           # the paper taps down to global z = 0 (sea level)
+
+
+def plan_scan(box_mm: Sequence[float], *, step_mm: float = SCAN_STEP_MM) -> np.ndarray:
+    """Zigzag (boustrophedon) tap centres covering ``box_mm = (x0, x1, y0, y1)`` (map frame).
+
+    ``n = ceil(extent / step)`` centres per axis (at least one), spaced ``step_mm`` and centred on
+    the box, so their span is at most the box extent and the box edges lie within ``step/2`` of the
+    outermost centres (covered by a sensor of radius >= step/sqrt(2) = 10.6 mm; the dense pattern's
+    is 14.4 mm). Rows run south to north; odd rows run east to west.
+
+    Returns
+    -------
+    (n_taps, 2) float64 tap centres (x, y) in mm, in visiting order.
+    """
+    x0, x1, y0, y1 = (float(v) for v in box_mm)
+    if not (x1 > x0 and y1 > y0):
+        raise DataError(f"scan box {tuple(box_mm)} mm: need x0 < x1 and y0 < y1")
+    if not step_mm > 0:
+        raise DataError(f"scan step must be > 0 mm, got {step_mm}")
+
+    def axis(lo, hi):
+        n = max(1, int(math.ceil((hi - lo) / step_mm - 1e-9)))
+        return (lo + hi) / 2 + (np.arange(n) - (n - 1) / 2) * step_mm
+
+    xs, ys = axis(x0, x1), axis(y0, y1)
+    rows = [np.column_stack([xs if r % 2 == 0 else xs[::-1], np.full(len(xs), y)]) for r, y in enumerate(ys)]
+    return np.vstack(rows)
+
+
+def tap_indenter(tmap: TerrainMap, centre_xy_mm: Sequence[float], *, skin_z_mm: float = TAP_Z_MM,
+                 radius_mm: float = 22.0, spacing_mm: float = 0.2) -> HeightMap:
+    """The terrain under a downward-facing sensor, as an indenter surface in the SENSOR frame.
+
+    The sensor looks down on the map (sensor +z = global -z, sensor x = global x, sensor y = global
+    -y: a rotation of 180 deg about x), its undeformed outer skin centred at global
+    ``(cx, cy, skin_z_mm)``. A terrain point at global height h then sits at sensor
+    ``z = skin_z_mm - h``: positive means still in front of the skin, negative means the relief
+    pushes into the rest skin by that much.
+
+    Returns
+    -------
+    HeightMap on a square grid of half-width ``radius_mm`` and ``spacing_mm``, sensor frame (mm).
+    """
+    cx, cy = (float(v) for v in centre_xy_mm)
+    n = int(round(radius_mm / spacing_mm))
+    s = np.arange(-n, n + 1) * spacing_mm
+    XS, YS = np.meshgrid(s, s)
+    h = tmap.sample_z_mm(cx + XS, cy - YS, frame="global")
+    return HeightMap(s, s, skin_z_mm - h)
+
+
+def sensor_to_global_rotation() -> np.ndarray:
+    """3x3 rotation global_from_sensor of a sensor facing down (180 deg about x)."""
+    return np.diag([1.0, -1.0, -1.0])
