@@ -1,0 +1,261 @@
+"""The per-frame runner: detect -> match (DTRC) -> triangulate -> refraction -> skin surface.
+
+:class:`Reconstructor` chains the stage functions for one sensor and keeps the little state the
+stages need across frames (the tracker, the undeformed reference for the linear refraction model).
+:func:`reconstruct` runs it over a frame source and writes the results to a folder.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from pipeline.design import SensorDesign
+from pipeline.errors import UserError
+from pipeline.refraction import correct_exact, correct_linear
+from pipeline.surface import MIN_MARKERS, height_map, skin_surface
+from pipeline.triangulation import triangulate
+from pipeline.types import (HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
+                            StereoFrame)
+
+__all__ = ["Reconstructor", "FrameResult", "reconstruct", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
+
+REFRACTION_MODES = ("exact", "linear")
+TRACKERS = ("dtrc", "nn")
+
+
+class RunnerError(UserError, ValueError):
+    """Bad runner options (unknown refraction mode or tracker, missing reference)."""
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Everything the runner produced for one frame.
+
+    ``matches`` pixels per marker; ``apparent`` straight-ray positions; ``corrected`` refraction-corrected
+    marker positions; ``skin`` skin points + normals (None with fewer than MIN_MARKERS markers);
+    ``height_map`` (None unless requested); ``timings_ms`` per stage and ``total``; ``unmatched_ids``
+    design ids not reconstructed in this frame; ``n_expected`` markers of the design. 3-D in the sensor
+    frame, mm.
+    """
+
+    index: int
+    timestamp_s: float
+    matches: MarkerMatches
+    apparent: MarkerCloud
+    corrected: MarkerCloud
+    skin: SkinSurface | None
+    height_map: HeightMap | None
+    timings_ms: dict[str, float]
+    unmatched_ids: np.ndarray
+    n_expected: int
+    n_blobs: tuple[int, int] = (0, 0)
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def n_matched(self) -> int:
+        return len(self.corrected)
+
+    def max_abs_dz_mm(self, design: SensorDesign) -> float:
+        """Largest |z - z_rest| over the corrected markers (0 for an empty frame)."""
+        if len(self.corrected) == 0:
+            return 0.0
+        rest = design.rest_markers_mm()[self.corrected.ids, 2]
+        return float(np.max(np.abs(self.corrected.xyz_mm[:, 2] - rest)))
+
+    def summary(self, design: SensorDesign) -> str:
+        s = (f"frame {self.index}: {self.n_matched}/{self.n_expected} markers, max |dz| "
+             f"{self.max_abs_dz_mm(design):.3f} mm, {self.timings_ms['total']:.1f} ms")
+        if len(self.unmatched_ids):
+            ids = ",".join(str(i) for i in self.unmatched_ids[:12]) + ("..." if len(self.unmatched_ids) > 12 else "")
+            s += f", unmatched ids {ids}"
+        if self.notes:
+            s += " (" + "; ".join(self.notes) + ")"
+        return s
+
+
+def _empty_cloud() -> MarkerCloud:
+    return MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
+
+
+class Reconstructor:
+    """Reconstruct markers and skin for one sensor, frame by frame.
+
+    Parameters
+    ----------
+    design : SensorDesign
+    calib : StereoCalibration
+    refraction : {"exact", "linear"}
+        Exact ray tracing through the stack, or the paper's linear model relative to a reference frame.
+    n_gel : float, optional
+        Refractive index: for "linear" the effective index (the paper fits 1.51); for "exact" it
+        overrides the design's gel index. Default: ``design.optics.gel_n``.
+    tracker : {"dtrc", "nn"}
+        DTRC identification in every frame, or nearest-neighbour tracking from the first frame.
+    reference : StereoFrame or MarkerCloud, optional
+        Undeformed frame (or its apparent cloud) for the linear model; default: the first processed frame.
+    detection_params : DetectionParams, optional
+    with_height_map : bool
+        Also resample the skin on a grid (``height_map_step_mm``) each frame.
+    """
+
+    def __init__(self, design: SensorDesign, calib: StereoCalibration, *, refraction: str = "exact",
+                 n_gel: float | None = None, tracker: str = "dtrc", reference: StereoFrame | MarkerCloud | None = None,
+                 detection_params=None, with_height_map: bool = False, height_map_step_mm: float = 0.25) -> None:
+        if refraction not in REFRACTION_MODES:
+            raise RunnerError(f"refraction mode {refraction!r}: choose one of {REFRACTION_MODES}")
+        if tracker not in TRACKERS:
+            raise RunnerError(f"tracker {tracker!r}: choose one of {TRACKERS}")
+        if n_gel is not None and not 1.0 <= n_gel <= 3.0:
+            raise RunnerError(f"n_gel {n_gel}: refractive index outside [1, 3]")
+        from pipeline import detection, dtrc
+
+        self.design, self.calib = design, calib
+        self.refraction, self.tracker_name = refraction, tracker
+        self.n_gel = n_gel
+        self._detect = detection.detect_markers
+        self._detection_params = detection_params if detection_params is not None else detection.DetectionParams()
+        self._match_stereo = dtrc.match_stereo
+        self._tracker = dtrc.DTRCTracker(design) if tracker == "dtrc" else dtrc.NearestNeighbourTracker(design)
+        self.with_height_map = with_height_map
+        self.height_map_step_mm = height_map_step_mm
+        self._all_ids = np.arange(design.marker_count, dtype=np.int64)
+        self._reference: MarkerCloud | None = None
+        if isinstance(reference, MarkerCloud):
+            self._reference = reference
+        elif isinstance(reference, StereoFrame):
+            matches = self._match(reference)[0]
+            self._reference = triangulate(matches, calib)
+        elif reference is not None:
+            raise RunnerError("reference must be a StereoFrame or a MarkerCloud")
+
+    @property
+    def reference(self) -> MarkerCloud | None:
+        """Apparent cloud of the undeformed reference frame (linear model), once known."""
+        return self._reference
+
+    def _match(self, frame: StereoFrame) -> tuple[MarkerMatches, tuple[int, int], dict[str, float]]:
+        t0 = time.perf_counter()
+        left = self._detect(frame.left, params=self._detection_params)
+        right = self._detect(frame.right, params=self._detection_params)
+        t1 = time.perf_counter()
+        matches = self._tracker.update(left, right)
+        t2 = time.perf_counter()
+        return matches, (len(left), len(right)), {"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)}
+
+    def process(self, frame: StereoFrame) -> FrameResult:
+        """Run all stages on one frame. A frame without enough markers gives an empty result (all ids
+        unmatched) rather than an error; bad frames are rejected by :class:`StereoFrame` itself."""
+        if not isinstance(frame, StereoFrame):
+            raise RunnerError(f"Reconstructor.process: expected a StereoFrame, got {type(frame).__name__}")
+        t_start = time.perf_counter()
+        notes: list[str] = []
+        matches, n_blobs, timings = self._match(frame)
+        t = time.perf_counter()
+        apparent = triangulate(matches, self.calib)
+        timings["triangulate"] = 1e3 * (time.perf_counter() - t)
+        t = time.perf_counter()
+        if self.refraction == "exact":
+            corrected = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel)
+        else:
+            if self._reference is None:
+                if len(apparent) < self.design.marker_count:
+                    notes.append(f"reference frame has {len(apparent)}/{self.design.marker_count} markers")
+                self._reference = apparent
+            n = self.n_gel if self.n_gel is not None else self.design.optics.gel_n
+            corrected = correct_linear(apparent, self._reference, n, self.design)
+        timings["refraction"] = 1e3 * (time.perf_counter() - t)
+        t = time.perf_counter()
+        skin = None
+        if len(corrected) >= MIN_MARKERS:
+            skin = skin_surface(corrected, self.design)
+        elif len(corrected):
+            notes.append(f"only {len(corrected)} markers: no skin surface")
+        timings["surface"] = 1e3 * (time.perf_counter() - t)
+        hm = None
+        if self.with_height_map and skin is not None:
+            t = time.perf_counter()
+            hm = height_map(skin, step_mm=self.height_map_step_mm, mask_radius_mm=self.design.gel.radius_mm)
+            timings["height_map"] = 1e3 * (time.perf_counter() - t)
+        timings["total"] = 1e3 * (time.perf_counter() - t_start)
+        unmatched = np.setdiff1d(self._all_ids, corrected.ids)
+        if n_blobs[0] == 0 or n_blobs[1] == 0:
+            notes.append(f"no markers detected ({n_blobs[0]} left, {n_blobs[1]} right blobs)")
+        return FrameResult(index=frame.index, timestamp_s=frame.timestamp_s, matches=matches, apparent=apparent,
+                           corrected=corrected, skin=skin, height_map=hm, timings_ms=timings,
+                           unmatched_ids=unmatched, n_expected=self.design.marker_count, n_blobs=n_blobs,
+                           notes=tuple(notes))
+
+
+def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out_dir: str | Path, *,
+                max_frames: int | None = None, preview_every: int = 0, progress: bool = True,
+                echo=print) -> dict:
+    """Run a reconstructor over frames and write results to ``out_dir``.
+
+    Per frame: ``markers_XXXX.csv`` and ``markers_XXXX.ply`` (corrected markers), ``skin_XXXX.ply``
+    (skin points + normals), ``heightmap_XXXX.npz``; for the last frame (and every ``preview_every``-th
+    if > 0) ``surface_XXXX.stl`` / ``surface_XXXX.ply`` meshes and ``preview_XXXX.png``; finally
+    ``summary.json``. Returns the summary dict.
+    """
+    from tqdm import tqdm
+
+    from pipeline.io import heightmap_mesh, write_heightmap_npz, write_markers_csv, write_ply, write_preview_png
+    from pipeline.io import write_stl
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    design = reconstructor.design
+    per_frame = []
+    last = None
+    bar = tqdm(total=max_frames, unit="frame", disable=not progress, leave=False)
+
+    def mesh_outputs(res: FrameResult, hm: HeightMap | None) -> None:
+        tag = f"{res.index:04d}"
+        if hm is not None:
+            V, F = heightmap_mesh(hm)
+            if len(F):
+                write_stl(out / f"surface_{tag}.stl", V, F)
+                write_ply(out / f"surface_{tag}.ply", V, faces=F, binary=True)
+        write_preview_png(out / f"preview_{tag}.png", hm, res.corrected,
+                          title=f"{design.name} frame {res.index}: {res.n_matched}/{res.n_expected} markers")
+
+    try:
+        for k, frame in enumerate(frames):
+            if max_frames is not None and k >= max_frames:
+                break
+            res = reconstructor.process(frame)
+            tag = f"{res.index:04d}"
+            write_markers_csv(out / f"markers_{tag}.csv", res.corrected)
+            write_ply(out / f"markers_{tag}.ply", res.corrected.xyz_mm)
+            hm = res.height_map
+            if res.skin is not None:
+                write_ply(out / f"skin_{tag}.ply", res.skin.xyz_mm, normals=res.skin.normals)
+                if hm is None:
+                    hm = height_map(res.skin, mask_radius_mm=design.gel.radius_mm)
+                write_heightmap_npz(out / f"heightmap_{tag}.npz", hm)
+            if preview_every > 0 and k % preview_every == 0:
+                mesh_outputs(res, hm)
+            echo(res.summary(design))
+            per_frame.append({"index": res.index, "timestamp_s": res.timestamp_s, "matched": res.n_matched,
+                              "expected": res.n_expected, "max_abs_dz_mm": res.max_abs_dz_mm(design),
+                              "unmatched_ids": res.unmatched_ids.tolist(), "timings_ms": res.timings_ms,
+                              "notes": list(res.notes)})
+            last = (res, hm)
+            bar.update(1)
+    finally:
+        bar.close()
+    if last is None:
+        raise RunnerError("reconstruct: the source delivered no frames")
+    mesh_outputs(*last)
+    totals = np.array([f["timings_ms"]["total"] for f in per_frame])
+    summary = {"design": design.name, "refraction": reconstructor.refraction, "tracker": reconstructor.tracker_name,
+               "n_gel": reconstructor.n_gel, "frames": len(per_frame), "units": {"xyz": "mm", "time": "ms"},
+               "median_total_ms": float(np.median(totals)), "per_frame": per_frame}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
+    return summary
+
