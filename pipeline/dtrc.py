@@ -1,0 +1,490 @@
+"""Stage 4: Delaunay-Triangulation-Ring-Coding (DTRC) marker matching and tracking.
+
+Per view (paper Sec. "Marker Localization", Alg. 1, Table III):
+
+1. **Meshing** — Delaunay triangulation of the blob centres (``scipy.spatial.Delaunay``), after
+   dropping isolated points far outside the lattice (nearest neighbour > ``OUTLIER_NN_FACTOR`` x the
+   median). The mesh is carved from the outside: boundary triangles that are slivers (circumradius
+   > ``SLIVER_RADIUS_FACTOR`` x their shortest edge, i.e. hull edges bridging a concavity) or that have
+   a boundary edge longer than ``LONG_EDGE_FACTOR`` x the median edge are removed until none is left,
+   so the boundary follows the marker lattice. A triangle that spans the gap of ONE missing marker
+   (circumradius = pitch, shortest edge = pitch) survives, so a missing marker does not pull an inner
+   marker into the outer ring.
+2. **Ring extraction** — the edge ring is the set of vertices on boundary edges (edges of exactly one
+   remaining triangle; interior markers have ``links`` reciprocal links, edge markers fewer), ordered
+   counter-clockwise by ``atan2(v, u)`` about the centroid of the remaining points. The ring is
+   peeled (its triangles removed) and the next ring extracted, ``layers`` times (Table III's ``m``).
+3. **Coding** — rings are coded from the centre outward. A ring whose size equals the design's and
+   whose spacing is regular is rotated onto the design ring: the cyclic shift minimising the angular
+   residual against the design angles plus the rotation carried from the ring inside it (ring 1 fixes
+   the rotation, unambiguous within +-half its pitch, i.e. +-30 deg for hexagons). This gives the
+   canonical ids of :mod:`pipeline.design` on an undeformed sensor and is consistent between views and
+   over time. A ring whose size or spacing disagrees is coded by prediction instead: each design slot
+   is predicted from a local affine fit to its already-coded design neighbours and takes the blob that
+   is the mutual nearest within ``PREDICT_GATE`` pitches; slots without such a blob are *unmatched*
+   (reported, never guessed).
+
+Tracking: identity is the code, so :class:`DTRCTracker` simply re-codes every frame (large, fast
+motions keep identity). :class:`NearestNeighbourTracker` is the paper's KNN baseline.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+from pipeline.design import SensorDesign
+from pipeline.types import Blobs, MarkerMatches
+
+__all__ = ["RingCoding", "code_rings", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
+           "mesh_edges", "OUTLIER_NN_FACTOR", "SLIVER_RADIUS_FACTOR", "LONG_EDGE_FACTOR", "PREDICT_GATE"]
+
+#: Points whose nearest neighbour is farther than this x the median NN distance are spurious
+#: (lattice points have NN = 1 pitch; 2.0 keeps a marker next to one missing neighbour).
+OUTLIER_NN_FACTOR = 2.0
+#: Boundary triangles with circumradius / shortest edge above this are slivers (equilateral 0.58,
+#: square-lattice half 0.71, one-missing-marker gap 1.0; a hull edge over a 0.1-pitch dent ~5).
+SLIVER_RADIUS_FACTOR = 1.6
+#: Boundary edges longer than this x the median edge are cut (a single missing marker leaves 2.0).
+LONG_EDGE_FACTOR = 2.3
+#: Prediction gate in local pitches: a blob must lie within this of its predicted slot (neighbours
+#: are 1 pitch apart, so 0.4 leaves a 0.2-pitch margin to the half-way point).
+PREDICT_GATE = 0.4
+#: Consecutive ring gaps must stay within [1/RING_GAP_TOL, RING_GAP_TOL] x the design gap (scaled);
+#: one missing marker doubles a gap, a spurious one halves it.
+RING_GAP_TOL = 1.5
+
+
+@dataclass(frozen=True)
+class RingCoding:
+    """Result of ring coding one view.
+
+    Attributes
+    ----------
+    ids : (N,) int64
+        Canonical design id of each input blob, -1 where uncoded (spurious or ambiguous).
+    ring : (N,) int64
+        Peel index of each blob (0 = outermost ring found), -1 for points dropped before meshing.
+    ring_sizes_found : tuple of int
+        Number of blobs in each peeled ring, outermost first.
+    ring_sizes_expected : tuple of int
+        The design's ring sizes, outermost first.
+    unmatched_ids : (M,) int64
+        Design ids not coded in this view.
+    mesh_edges : (E, 2) int64
+        Edges (blob indices) of the carved Delaunay mesh (for drawing).
+    messages : tuple of str
+        Human-readable notes on mismatches.
+    """
+
+    ids: np.ndarray
+    ring: np.ndarray
+    ring_sizes_found: tuple[int, ...]
+    ring_sizes_expected: tuple[int, ...]
+    unmatched_ids: np.ndarray
+    mesh_edges: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))
+    messages: tuple[str, ...] = ()
+
+    @property
+    def complete(self) -> bool:
+        """True when every design marker was coded."""
+        return len(self.unmatched_ids) == 0
+
+    @property
+    def coded(self) -> int:
+        return int(np.sum(self.ids >= 0))
+
+
+# ----- design rings -------------------------------------------------------------------------
+
+_DESIGN_CACHE: dict[tuple, tuple] = {}
+
+
+def _design_rings(design: SensorDesign):
+    """Per layer k (0 = centre): (ids (n_k,), design xy (n_k, 2), angles about the ring centroid)."""
+    key = (design.pattern.kind, design.pattern.layers, design.pattern.separation_mm)
+    if key not in _DESIGN_CACHE:
+        xy = design.rest_markers_mm()[:, :2]
+        layers = design.marker_layers()
+        rings = []
+        for k in range(design.pattern.layers):
+            ids = np.nonzero(layers == k)[0]
+            p = xy[ids]
+            c = p.mean(axis=0)
+            rings.append((ids, p, np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0])))
+        _DESIGN_CACHE[key] = (xy, rings)
+    return _DESIGN_CACHE[key]
+
+
+# ----- meshing and peeling ------------------------------------------------------------------
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _triangulate(pts: np.ndarray) -> np.ndarray:
+    """Delaunay simplices (M, 3); joggled when exact lattices leave co-circular points unused."""
+    if len(pts) < 3:
+        return np.empty((0, 3), np.intp)
+    try:
+        tri = Delaunay(pts)
+        simp = tri.simplices
+        if len(np.unique(simp)) < len(pts):
+            simp = Delaunay(pts, qhull_options="QJ Qbb Qc").simplices
+    except QhullError:
+        try:
+            simp = Delaunay(pts, qhull_options="QJ Qbb Qc").simplices
+        except QhullError:
+            return np.empty((0, 3), np.intp)
+    return simp
+
+
+def _edge_keys(tris: np.ndarray, n: int):
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    e.sort(axis=1)
+    return e[:, 0] * n + e[:, 1], e
+
+
+def _boundary(tris: np.ndarray, n: int):
+    """Boundary edge mask per (triangle, edge slot) and boundary edges (B, 2)."""
+    keys, e = _edge_keys(tris, n)
+    _, inv, cnt = np.unique(keys, return_inverse=True, return_counts=True)
+    on_b = cnt[inv] == 1
+    return on_b.reshape(3, -1).T, e[on_b]
+
+
+def _carve(pts: np.ndarray, tris: np.ndarray, med_edge: float) -> np.ndarray:
+    """Remove boundary slivers and long boundary edges until the boundary follows the lattice."""
+    if len(tris) == 0:
+        return tris
+    a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
+    la, lb, lc = (np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1))
+    area2 = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    circum = la * lb * lc / np.maximum(2 * area2, 1e-12)
+    sliver = circum > SLIVER_RADIUS_FACTOR * np.minimum(np.minimum(la, lb), lc)
+    elen = np.column_stack([la, lb, lc])
+    alive = np.ones(len(tris), bool)
+    n = len(pts)
+    for _ in range(len(tris)):
+        idx = np.nonzero(alive)[0]
+        if len(idx) == 0:
+            break
+        on_b, _ = _boundary(tris[idx], n)
+        long_b = (on_b & (elen[idx] > LONG_EDGE_FACTOR * med_edge)).any(axis=1)
+        bad = on_b.any(axis=1) & (sliver[idx] | long_b)
+        if not bad.any():
+            break
+        alive[idx[bad]] = False
+    return tris[alive]
+
+
+def mesh_edges(tris: np.ndarray, n: int) -> np.ndarray:
+    """Unique undirected edges (E, 2) of a triangle list."""
+    if len(tris) == 0:
+        return np.empty((0, 2), np.int64)
+    keys, e = _edge_keys(tris, n)
+    _, first = np.unique(keys, return_index=True)
+    return e[first].astype(np.int64)
+
+
+def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float):
+    """Peel up to ``n_rings`` rings. Returns (list of index arrays, outermost first; carved tris)."""
+    idx = np.nonzero(active)[0]
+    rings: list[np.ndarray] = []
+    if len(idx) == 0:
+        return rings, np.empty((0, 3), np.intp)
+    tris = idx[_triangulate(pts[idx])] if len(idx) >= 3 else np.empty((0, 3), np.intp)
+    tris = _carve(pts, tris, med_edge)
+    carved = tris.copy()
+    remaining = np.zeros(len(pts), bool)
+    remaining[idx] = True
+    n = len(pts)
+    for _ in range(n_rings):
+        rem = np.nonzero(remaining)[0]
+        if len(rem) == 0:
+            break
+        in_tri = np.zeros(n, bool)
+        if len(tris):
+            in_tri[tris.ravel()] = True
+            _, bedges = _boundary(tris, n)
+            ring_mask = np.zeros(n, bool)
+            ring_mask[bedges.ravel()] = True
+        else:
+            ring_mask = np.zeros(n, bool)
+        ring_mask |= remaining & ~in_tri  # isolated leftovers (e.g. the centre) belong to this ring
+        ring_idx = np.nonzero(ring_mask & remaining)[0]
+        if len(ring_idx) == 0:
+            break
+        c = pts[rem].mean(axis=0)
+        ang = np.arctan2(pts[ring_idx, 1] - c[1], pts[ring_idx, 0] - c[0])
+        rings.append(ring_idx[np.argsort(ang, kind="stable")])
+        remaining[ring_idx] = False
+        if len(tris):
+            tris = tris[~ring_mask[tris].any(axis=1)]
+            tris = _carve(pts, tris, med_edge)
+    return rings, carved
+
+
+# ----- coding -------------------------------------------------------------------------------
+
+def _gaps_regular(found: np.ndarray, design_xy: np.ndarray) -> bool:
+    """Consecutive gaps of a ring (both cyclic, in angular order) agree with the design's."""
+    if len(found) < 3:
+        return True
+    gf = np.linalg.norm(np.roll(found, -1, axis=0) - found, axis=1)
+    gd = np.linalg.norm(np.roll(design_xy, -1, axis=0) - design_xy, axis=1)
+    ratio = gf / np.median(gf) / (gd / np.median(gd)).mean()
+    return bool(np.all((ratio < RING_GAP_TOL) & (ratio > 1 / RING_GAP_TOL)))
+
+
+def _shift_code(phi: np.ndarray, psi: np.ndarray, theta: float) -> tuple[int, float, float]:
+    """Best cyclic shift aligning found angles ``phi`` (sorted CCW) to design ``psi`` (canonical order).
+
+    Returns (shift, new rotation estimate, max |residual - mean|). Found point ``(i + shift) % n``
+    is design slot ``i``.
+    """
+    n = len(psi)
+    shifts = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n  # row s: found (i + s) % n
+    r = _wrap(phi[shifts] - psi[None, :] - theta)
+    m = np.arctan2(np.sin(r).mean(axis=1), np.cos(r).mean(axis=1))
+    dev = _wrap(r - m[:, None])
+    cost = np.sum(dev * dev, axis=1) + n * m * m
+    s = int(np.argmin(cost))
+    return s, theta + float(m[s]), float(np.max(np.abs(dev[s])))
+
+
+def _predict_code(pts: np.ndarray, free: np.ndarray, slot_ids: np.ndarray, design_xy: np.ndarray,
+                  coded_ids: np.ndarray, coded_px: np.ndarray, pitch_mm: float) -> dict[int, int]:
+    """Code slots by local-affine prediction from coded neighbours; returns {slot id: blob index}."""
+    if len(coded_ids) < 3 or not free.any():
+        return {}
+    tree = cKDTree(design_xy[coded_ids])
+    k = min(8, len(coded_ids))
+    preds, scales = [], []
+    for sid in slot_ids:
+        _, nb = tree.query(design_xy[sid], k=k)
+        X = np.column_stack([design_xy[coded_ids[nb]], np.ones(k)])
+        A, *_ = np.linalg.lstsq(X, coded_px[nb], rcond=None)
+        preds.append(np.append(design_xy[sid], 1.0) @ A)
+        scales.append(math.sqrt(abs(np.linalg.det(A[:2]))) * pitch_mm)
+    preds, scales = np.asarray(preds), np.asarray(scales)
+    cand = np.nonzero(free)[0]
+    ctree = cKDTree(pts[cand])
+    d, j = ctree.query(preds)
+    out: dict[int, int] = {}
+    back = cKDTree(preds)
+    for si, (dist, jj) in enumerate(zip(d, j)):
+        if dist > PREDICT_GATE * scales[si]:
+            continue
+        _, si_back = back.query(pts[cand[jj]])
+        if si_back == si:
+            out[int(slot_ids[si])] = int(cand[jj])
+    return out
+
+
+def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
+    """DTRC ring coding of one view.
+
+    Parameters
+    ----------
+    blobs : Blobs
+        Marker centres of ONE view (px).
+    design : SensorDesign
+        Gives the ring count (``pattern.layers``), ring sizes and canonical ids.
+
+    Returns
+    -------
+    RingCoding
+        Canonical id per blob (-1 uncoded), ring membership, sizes and messages. Never raises on bad
+        input: an empty or unusable point set gives all markers unmatched.
+
+    Notes
+    -----
+    Assumes the image is not mirrored relative to the sensor frame (true for this sensor: u grows with
+    x, v with y) and rotated by less than half the pitch angle of ring 1 (30 deg for hexagon/circular,
+    22.5 deg for square).
+    """
+    pts = np.asarray(blobs.xy_px, dtype=np.float64)
+    n = len(pts)
+    xy_d, drings = _design_rings(design)
+    n_layers = design.pattern.layers
+    expected = tuple(len(drings[k][0]) for k in range(n_layers - 1, -1, -1))
+    ids = np.full(n, -1, np.int64)
+    ring_of = np.full(n, -1, np.int64)
+    msgs: list[str] = []
+    if n < 4:
+        return RingCoding(ids, ring_of, (), expected, np.arange(len(xy_d), dtype=np.int64),
+                          messages=(f"only {n} blobs",))
+    nn, _ = cKDTree(pts).query(pts, k=2)
+    nn = nn[:, 1]
+    med_nn = float(np.median(nn))
+    active = nn <= OUTLIER_NN_FACTOR * med_nn
+    if (~active).any():
+        msgs.append(f"dropped {int((~active).sum())} isolated blob(s) outside the lattice")
+    rings, carved = _peel(pts, active, n_layers, med_nn)
+    edges = mesh_edges(carved, n)
+    for r, members in enumerate(rings):
+        ring_of[members] = r
+    found = tuple(len(r) for r in rings)
+    leftover = active & (ring_of < 0)
+    if leftover.any():
+        msgs.append(f"{int(leftover.sum())} blob(s) left inside after {n_layers} rings")
+
+    # code from the centre outward: peel r <-> layer n_layers - 1 - r
+    theta = 0.0
+    coded_ids: list[int] = []
+    coded_px: list[np.ndarray] = []
+    assigned = np.zeros(n, bool)
+    pitch = design.pattern.separation_mm
+    for layer in range(n_layers):
+        d_ids, d_xy, d_ang = drings[layer]
+        r = n_layers - 1 - layer
+        members = rings[r] if r < len(rings) else np.empty(0, np.intp)
+        members = members[~assigned[members]]
+        done = False
+        if len(members) == len(d_ids):
+            if layer == 0:
+                ids[members[0]] = d_ids[0]
+                done = True
+            else:
+                p = pts[members]
+                c = p.mean(axis=0)
+                phi = np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0])
+                o = np.argsort(phi, kind="stable")
+                members, phi = members[o], phi[o]
+                if _gaps_regular(pts[members], d_xy):
+                    shift, theta_new, spread = _shift_code(phi, d_ang, theta if layer > 1 else 0.0)
+                    half_pitch = math.pi / len(d_ids)
+                    if spread < half_pitch:
+                        ids[np.roll(members, -shift)] = d_ids
+                        theta = theta_new
+                        done = True
+        if not done:
+            free = ~assigned & active & (ids < 0)
+            got = _predict_code(pts, free, d_ids, xy_d, np.asarray(coded_ids, np.int64),
+                                np.asarray(coded_px).reshape(-1, 2), pitch)
+            for sid, bi in got.items():
+                ids[bi] = sid
+            msgs.append(f"ring {r} (layer {layer}): found {len(members)} blobs, expected {len(d_ids)}; "
+                        f"coded {len(got)} by prediction")
+        newly = np.nonzero((ids >= 0) & ~assigned)[0]
+        assigned[newly] = True
+        coded_ids.extend(ids[newly].tolist())
+        coded_px.extend(pts[newly])
+    all_ids = np.arange(len(xy_d), dtype=np.int64)
+    unmatched = np.setdiff1d(all_ids, ids[ids >= 0])
+    return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs))
+
+
+# ----- stereo matching and tracking ---------------------------------------------------------
+
+def _pair(left: Blobs, right: Blobs, lc: RingCoding, rc: RingCoding, n_markers: int) -> MarkerMatches:
+    li = np.full(n_markers, -1, np.int64)
+    ri = np.full(n_markers, -1, np.int64)
+    ok_l, ok_r = lc.ids >= 0, rc.ids >= 0
+    li[lc.ids[ok_l]] = np.nonzero(ok_l)[0]
+    ri[rc.ids[ok_r]] = np.nonzero(ok_r)[0]
+    both = (li >= 0) & (ri >= 0)
+    mid = np.nonzero(both)[0].astype(np.int64)
+    return MarkerMatches(ids=mid, left_px=left.xy_px[li[both]], right_px=right.xy_px[ri[both]],
+                         unmatched_ids=np.nonzero(~both)[0].astype(np.int64))
+
+
+def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatches:
+    """Match markers between the left and right views by their DTRC codes.
+
+    Parameters
+    ----------
+    left, right : Blobs
+        Marker centres in each half image (right coordinates relative to the right half).
+    design : SensorDesign
+
+    Returns
+    -------
+    MarkerMatches
+        Ids coded in both views (ascending), their pixel centres, and ``unmatched_ids``: design ids
+        not coded in at least one view.
+    """
+    return _pair(left, right, code_rings(left, design), code_rings(right, design), design.marker_count)
+
+
+class DTRCTracker:
+    """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion.
+
+    ``update(left, right) -> MarkerMatches`` (also callable). ``last_codings`` holds the two
+    :class:`RingCoding` of the latest frame.
+    """
+
+    def __init__(self, design: SensorDesign) -> None:
+        self.design = design
+        self.last_codings: tuple[RingCoding, RingCoding] | None = None
+
+    def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
+        lc, rc = code_rings(left, self.design), code_rings(right, self.design)
+        self.last_codings = (lc, rc)
+        return _pair(left, right, lc, rc, self.design.marker_count)
+
+    __call__ = update
+
+    def reset(self) -> None:
+        self.last_codings = None
+
+
+class NearestNeighbourTracker:
+    """The paper's KNN baseline: ids carried from the previous frame to the nearest blob.
+
+    The first frame (or after :meth:`reset`) is coded by DTRC. Afterwards each view independently
+    moves every id to the nearest current blob within ``gate_factor`` x the median marker pitch of
+    the first frame; when two ids claim one blob the closer keeps it, the other becomes unmatched.
+    """
+
+    def __init__(self, design: SensorDesign, *, gate_factor: float = 1.0) -> None:
+        self.design = design
+        self.gate_factor = float(gate_factor)
+        self._prev: list[dict[int, np.ndarray]] | None = None
+        self._gate = [math.inf, math.inf]
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def _carry(self, view: int, blobs: Blobs) -> dict[int, np.ndarray]:
+        prev = self._prev[view]
+        if not prev or len(blobs) == 0:
+            return {}
+        pid = np.fromiter(prev.keys(), np.int64)
+        ppx = np.asarray([prev[i] for i in pid])
+        d, j = cKDTree(blobs.xy_px).query(ppx)
+        ok = d <= self._gate[view]
+        out: dict[int, np.ndarray] = {}
+        best: dict[int, tuple[float, int]] = {}
+        for i, dd, jj, k in zip(pid, d, j, ok):
+            if k and (jj not in best or dd < best[jj][0]):
+                best[int(jj)] = (float(dd), int(i))
+        for jj, (_, i) in best.items():
+            out[i] = blobs.xy_px[jj]
+        return out
+
+    def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
+        n = self.design.marker_count
+        if self._prev is None:
+            lc, rc = code_rings(left, self.design), code_rings(right, self.design)
+            views = []
+            for v, (b, c) in enumerate(((left, lc), (right, rc))):
+                ok = c.ids >= 0
+                views.append({int(i): b.xy_px[k] for i, k in zip(c.ids[ok], np.nonzero(ok)[0])})
+                if len(b) >= 2:
+                    nn, _ = cKDTree(b.xy_px).query(b.xy_px, k=2)
+                    self._gate[v] = self.gate_factor * float(np.median(nn[:, 1]))
+        else:
+            views = [self._carry(0, left), self._carry(1, right)]
+        self._prev = views
+        common = sorted(set(views[0]) & set(views[1]))
+        ids = np.asarray(common, np.int64)
+        lp = np.asarray([views[0][i] for i in common]).reshape(-1, 2)
+        rp = np.asarray([views[1][i] for i in common]).reshape(-1, 2)
+        return MarkerMatches(ids, lp, rp, np.setdiff1d(np.arange(n, dtype=np.int64), ids))
+
+    __call__ = update
