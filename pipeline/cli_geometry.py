@@ -1,0 +1,195 @@
+"""Geometry subcommands of the ``stereotactip`` CLI: ``calibrate``, ``calibrate-refraction``, ``reconstruct``.
+
+``register(sub)`` adds them to the pipeline's subparsers (wired in :mod:`pipeline.cli`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.errors import UserError
+
+__all__ = ["register", "read_image", "frames_from_paths"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class CliInputError(UserError, ValueError):
+    """A command-line input (file, folder, option) is unusable."""
+
+
+def read_image(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CliInputError(f"{path}: not a readable image")
+    if img.dtype != np.uint8:
+        raise CliInputError(f"{path}: expected 8-bit pixels, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img
+
+
+def _expand(paths: list[str]) -> list[Path]:
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+            if not files:
+                raise CliInputError(f"{p}: folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+            out.extend(files)
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise CliInputError(f"{p}: no such file or folder")
+    return out
+
+
+def frames_from_paths(paths: list[str]):
+    """StereoFrames from concatenated 1280x480 images (files or folders, sorted by name)."""
+    from pipeline.types import StereoFrame
+
+    for k, p in enumerate(_expand(paths)):
+        yield StereoFrame(read_image(p), index=k, source=str(p))
+
+
+def _open_source(spec: str):
+    try:
+        from pipeline.sources import open_source
+    except ImportError:  # sources.py not available: folders / image files only
+        return frames_from_paths([spec])
+    return open_source(spec)
+
+
+def _load_calib(path: str):
+    from pipeline.types import StereoCalibration
+
+    return StereoCalibration.load_yaml(path)
+
+
+def _board(text: str) -> tuple[int, int]:
+    try:
+        a, b = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--board {text!r}: expected COLSxROWS squares, e.g. 9x7") from None
+    if a < 3 or b < 3:
+        raise argparse.ArgumentTypeError(f"--board {text!r}: need at least 3x3 squares")
+    return a, b
+
+
+def _steps(text: str) -> np.ndarray:
+    try:
+        vals = np.array([float(v) for v in text.split(",") if v.strip()])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--steps-mm {text!r}: expected comma-separated numbers") from None
+    if len(vals) < 2:
+        raise argparse.ArgumentTypeError("--steps-mm: need at least two steps")
+    return vals
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from pipeline.calibration import calibrate_stereo
+    from pipeline.design import load_design
+
+    design = load_design(args.design)
+    if args.left or args.right:
+        if args.pairs:
+            raise CliInputError("give either concatenated PAIRS or --left/--right lists, not both")
+        lefts, rights = _expand(args.left or []), _expand(args.right or [])
+        if len(lefts) != len(rights):
+            raise CliInputError(f"--left has {len(lefts)} images but --right has {len(rights)}")
+        pairs = [(f"{l.name}|{r.name}", read_image(l), read_image(r)) for l, r in zip(lefts, rights)]
+    else:
+        if not args.pairs:
+            raise CliInputError("no chessboard images: give PAIRS (1280x480 frames or folders) or --left/--right")
+        pairs = [(f.source, f.left, f.right) for f in frames_from_paths(args.pairs)]
+    calib, report = calibrate_stereo(pairs, board_squares=args.board, square_mm=args.square_mm,
+                                     sensor_from_left=design.camera_poses()["left"])
+    print(report.summary())
+    calib.save_yaml(args.out)
+    print(f"wrote {args.out} (sensor_from_left from design {design.name!r} nominal pose)")
+    return 0
+
+
+def _calibrate_refraction(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from pipeline.design import load_design
+    from pipeline.refraction import fit_refractive_index
+    from pipeline.runner import Reconstructor
+
+    design = load_design(args.design)
+    calib = _load_calib(args.calib)
+    steps = args.steps_mm
+    frames = list(frames_from_paths([args.sequence]))
+    if len(frames) % len(steps):
+        raise CliInputError(f"{args.sequence}: {len(frames)} frames is not a multiple of the {len(steps)} steps "
+                            f"(one frame per step, repeated trials)")
+    rec = Reconstructor(design, calib, refraction="exact")
+    true_dz, app_dz = [], []
+    n_trials = len(frames) // len(steps)
+    for trial in range(n_trials):
+        clouds = []
+        for k in tqdm(range(len(steps)), desc=f"trial {trial + 1}/{n_trials}", leave=False):
+            res = rec.process(frames[trial * len(steps) + k])
+            clouds.append(res.apparent)
+        ref = clouds[0]
+        for step, cloud in zip(steps, clouds):
+            common, i_ref, i_cur = np.intersect1d(ref.ids, cloud.ids, return_indices=True)
+            if len(common) == 0:
+                raise CliInputError(f"{args.sequence}: trial {trial + 1}, step {step} mm shares no markers "
+                                    f"with the first step")
+            true_dz.append(np.full(len(common), step - steps[0]))
+            # the press moves the board toward the cameras (-z): apparent displacement z'_0 - z'
+            app_dz.append(ref.xyz_mm[i_ref, 2] - cloud.xyz_mm[i_cur, 2])
+    fit = fit_refractive_index(np.concatenate(true_dz), np.concatenate(app_dz))
+    print(f"{n_trials} trial(s) x {len(steps)} steps: {fit.summary()}")
+    return 0
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    from pipeline.design import load_design
+    from pipeline.runner import Reconstructor, reconstruct
+
+    design = load_design(args.design)
+    calib = _load_calib(args.calib)
+    rec = Reconstructor(design, calib, refraction=args.refraction, n_gel=args.n_gel, tracker=args.tracker)
+    summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
+                          preview_every=args.preview_every)
+    print(f"{summary['frames']} frame(s), median {summary['median_total_ms']:.1f} ms/frame; wrote {args.out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("calibrate", help="stereo chessboard calibration -> calib.yaml")
+    p.add_argument("pairs", nargs="*", metavar="PAIRS", help="concatenated 1280x480 chessboard frames or folders")
+    p.add_argument("--left", nargs="+", help="left images (files or a folder), paired in name order with --right")
+    p.add_argument("--right", nargs="+", help="right images (files or a folder)")
+    p.add_argument("--board", type=_board, default=(9, 7), help="chessboard squares COLSxROWS (default 9x7)")
+    p.add_argument("--square-mm", type=float, default=4.0, help="square side in mm (default 4)")
+    p.add_argument("--design", default="hexagon127", help="design whose nominal left-camera pose places the sensor frame")
+    p.add_argument("--out", default="calib.yaml", help="output calibration file (OpenCV YAML)")
+    p.set_defaults(func=_calibrate)
+
+    p = sub.add_parser("calibrate-refraction", help="fit the effective refractive index from a skin-less press")
+    p.add_argument("sequence", metavar="SEQUENCE", help="folder of frames, one per step (trials repeated in order)")
+    p.add_argument("--calib", required=True, help="stereo calibration YAML")
+    p.add_argument("--design", default="hexagon127")
+    p.add_argument("--steps-mm", type=_steps, default=_steps("0,1,2,3,4,5,6,7,8"),
+                   help="press depth of each frame in mm, comma-separated (default 0,1,...,8)")
+    p.set_defaults(func=_calibrate_refraction)
+
+    p = sub.add_parser("reconstruct", help="markers + skin surface for every frame of a source")
+    p.add_argument("source", metavar="SOURCE", help="camera index, video, image folder or image")
+    p.add_argument("--calib", required=True, help="stereo calibration YAML")
+    p.add_argument("--design", default="hexagon127")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--refraction", choices=("exact", "linear"), default="exact")
+    p.add_argument("--n-gel", type=float, default=None, help="refractive index (linear model: effective, e.g. 1.51)")
+    p.add_argument("--tracker", choices=("dtrc", "nn"), default="dtrc")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--preview-every", type=int, default=0, help="also write mesh + PNG every k-th frame")
+    p.set_defaults(func=_reconstruct)
