@@ -1,0 +1,694 @@
+"""The digital twin's stereo renderer: markers in the gel, boards for calibration, seen by two OV5693s.
+
+Pipeline of one view (camera ``side``):
+
+1. Geometry in the sensor frame (mm): marker discs on dark pins, the dark skin underside, the mount
+   ring with four LEDs (skin module), or a chessboard / printed marker board (skin-less).
+2. Refraction: every vertex behind the acrylic/gel stack is moved to its *apparent* position for that
+   camera (:func:`twin.optics.apparent_points`, exact Snell per vertex). Each camera has its own
+   vertex buffers; both live in one pyrender scene and are shown/hidden per render.
+3. A flat-shaded (unlit) pinhole render with a field wider than the output, 4x MSAA.
+4. Lens distortion: ``cv2.remap`` with maps precomputed once: for each output pixel the ideal
+   normalised ray (exact inverse of the OpenCV model, :func:`twin.camera.pixels_to_normalised`)
+   is looked up in the pinhole render.
+5. Photometry: LED shading (four point LEDs under the acrylic, irradiance on the marker plane),
+   vignetting, Gaussian blur (σ = ``BLUR_SIGMA_PX``), shot + read noise from the caller's rng.
+
+Colours are given to OpenGL in B, G, R order, so the read-back RGBA buffer is already BGR(A).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.design import SensorDesign
+from pipeline.types import StereoCalibration, StereoFrame
+from twin.camera import gl_pose_from_cv_pose, pixels_to_normalised
+from twin.gl import RenderError, import_pyrender, offscreen_renderer, upload_positions
+from twin.optics import FlatStack, apparent_points, project_exact, trace_forward
+
+__all__ = [
+    "StereoRenderer",
+    "ChessboardSpec",
+    "true_calibration",
+    "project_exact",
+    "chessboard_corners_mm",
+    "chessboard_poses",
+    "render_chessboard_pairs",
+    "marker_rotations",
+]
+
+SIDES = ("left", "right")
+# quality -> (pinhole render focal length relative to the lens's, output supersampling factor)
+QUALITY_SCALE = {"draft": (0.75, 1), "fast": (1.0, 1), "high": (2.0, 2)}
+
+# Appearance. Albedos are floats in [0, 1] (pyrender treats integer 1 as 1/255), BGR order.
+MARKER_BGR = (0.97, 0.90, 0.80)          # white paint, bluish under white LEDs (real frames)
+MARKER_SIDE_BGR = (0.80, 0.74, 0.66)     # the marker's cylinder wall, less directly lit
+PIN_BGR = (0.04, 0.035, 0.035)
+SKIN_BGR = (0.075, 0.06, 0.06)           # black Agilus underside, slightly lifted by scatter
+MOUNT_BGR = (0.72, 0.82, 0.86)           # cream mount around the gel
+LED_BGR = (1.0, 1.0, 1.0)
+BOARD_BLACK_BGR = (0.06, 0.06, 0.06)
+BOARD_WHITE_BGR = (0.86, 0.86, 0.86)
+BACKGROUND_BGR = (0.02, 0.02, 0.02)
+LAB_BACKGROUND_BGR = (0.30, 0.30, 0.30)  # skin-less calibration: the lab behind the board
+
+BLUR_SIGMA_PX = 0.8                      # optics + demosaicing blur of a cheap M12 lens (brief: 0.6-1 px)
+SHOT_GAIN_DN_PER_E = 0.06                # DN per photo-electron: σ_shot = sqrt(0.06·I) ≈ 3.5 DN at 200 DN
+READ_NOISE_DN = 1.5
+VIGNETTE_POWER = 2.0                     # relative illumination cos^p(field angle)
+LED_COUNT = 4
+LED_RADIAL_GAP_MM = 2.5                  # LEDs sit this far outside the gel rim, just under the acrylic
+LED_GAMMA = 0.35                         # compresses the 1/d^4 point-LED falloff (the gel diffuses light)
+LED_SHADING_RANGE = (0.75, 1.2)
+MOUNT_OUTER_RADIUS_MM = 45.0
+RENDER_MARGIN_PX = 4                     # extra pinhole pixels around the needed field (bilinear support)
+ZNEAR_MM, ZFAR_MM = 1.0, 1000.0
+
+DISC_SECTIONS = 32                       # polygon sides of a marker disc (centroid exact by symmetry)
+PIN_SECTIONS = 12
+
+
+@dataclass(frozen=True)
+class ChessboardSpec:
+    """A printed chessboard: ``squares`` (columns, rows) of ``square_mm``, white margin ``margin_mm``.
+
+    Board frame: origin at the board centre, x along the columns, y along the rows, printed face in the
+    plane z = 0 facing −z (toward the cameras when the board's rotation is the identity). Square
+    (column c, row r) is black when c + r is even (all four corner squares black for odd × odd).
+    """
+
+    squares: tuple[int, int] = (9, 7)
+    square_mm: float = 4.0
+    margin_mm: float = 4.0
+
+    def __post_init__(self) -> None:
+        if min(self.squares) < 2 or self.square_mm <= 0 or self.margin_mm < 0:
+            raise RenderError(f"ChessboardSpec: need >= 2x2 squares of positive size and margin >= 0, got "
+                              f"{self.squares}, {self.square_mm} mm, {self.margin_mm} mm")
+
+
+def chessboard_corners_mm(spec: ChessboardSpec = ChessboardSpec()) -> np.ndarray:
+    """Inner corners of the chessboard in its board frame, ((cols-1)*(rows-1), 3) mm, row-major from −x, −y."""
+    cols, rows = spec.squares
+    s = spec.square_mm
+    x = (np.arange(1, cols) - cols / 2.0) * s
+    y = (np.arange(1, rows) - rows / 2.0) * s
+    X, Y = np.meshgrid(x, y)
+    return np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+
+
+def true_calibration(design: SensorDesign) -> StereoCalibration:
+    """The stereo calibration that is exactly true for the twin's cameras (OpenCV conventions).
+
+    ``X_right = R X_left + T`` from the nominal ``design.camera_poses()`` (sensor_from_camera), K and D
+    from ``design.cameras``, ``sensor_from_left`` the left pose, ``rms_px = 0``.
+    """
+    poses = design.camera_poses()
+    right_from_left = np.linalg.inv(poses["right"]) @ poses["left"]
+    c = design.cameras
+    return StereoCalibration(K1=c.left.K, D1=c.left.D, K2=c.right.K, D2=c.right.D,
+                             R=right_from_left[:3, :3], T=right_from_left[:3, 3],
+                             image_size=(c.width_px, c.height_px), sensor_from_left=poses["left"],
+                             rms_px=0.0)
+
+
+def marker_rotations(axis: np.ndarray) -> np.ndarray:
+    """Rotations (N, 3, 3) taking the rest pin direction (0, 0, −1) to each unit ``axis`` (minimal angle)."""
+    a = np.asarray(axis, dtype=np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(a, axis=1, keepdims=True)
+    if np.any(norm < 1e-9):
+        raise RenderError("marker_axis: contains zero vectors")
+    a = a / norm
+    a0 = np.array([0.0, 0.0, -1.0])
+    v = np.cross(a0, a)                        # (N, 3)
+    c = a @ a0                                 # (N,)
+    if np.any(c <= -1.0 + 1e-9):
+        raise RenderError("marker_axis: a pin points straight out of the skin (+z); not physical")
+    vx = np.zeros((len(a), 3, 3))
+    vx[:, 0, 1], vx[:, 0, 2] = -v[:, 2], v[:, 1]
+    vx[:, 1, 0], vx[:, 1, 2] = v[:, 2], -v[:, 0]
+    vx[:, 2, 0], vx[:, 2, 1] = -v[:, 1], v[:, 0]
+    return np.eye(3)[None] + vx + (vx @ vx) / (1.0 + c)[:, None, None]
+
+
+# ----- mesh templates (local coordinates, mm) ---------------------------------------------------
+
+def _cylinder(radius: float, z0: float, z1: float, sections: int, *, cap0: bool = True,
+              cap1: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Cylinder along z from z0 to z1 with optional end caps: vertices (2S+2, 3), faces (2S..4S, 3)."""
+    ang = np.arange(sections) * (2 * np.pi / sections)
+    ring = np.column_stack([radius * np.cos(ang), radius * np.sin(ang)])
+    v = np.vstack([np.column_stack([ring, np.full(sections, z0)]), np.column_stack([ring, np.full(sections, z1)]),
+                   [[0.0, 0.0, z0], [0.0, 0.0, z1]]])
+    i = np.arange(sections)
+    j = (i + 1) % sections
+    c0, c1 = 2 * sections, 2 * sections + 1
+    parts = [np.column_stack([i, j, sections + j]), np.column_stack([i, sections + j, sections + i])]
+    if cap0:
+        parts.append(np.column_stack([np.full(sections, c0), j, i]))
+    if cap1:
+        parts.append(np.column_stack([np.full(sections, c1), sections + i, sections + j]))
+    return v, np.vstack(parts)
+
+
+def _disc(radius: float, sections: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat disc in z = 0: vertices (S+1, 3) (centre last), fan faces (S, 3)."""
+    ang = np.arange(sections) * (2 * np.pi / sections)
+    v = np.vstack([np.column_stack([radius * np.cos(ang), radius * np.sin(ang), np.zeros(sections)]), [[0, 0, 0]]])
+    i = np.arange(sections)
+    return v, np.column_stack([np.full(sections, sections), i, (i + 1) % sections])
+
+
+def _annulus(r0: float, r1: float, n_radial: int, n_angular: int) -> tuple[np.ndarray, np.ndarray]:
+    """Polar grid between radii r0 (may be 0) and r1 in z = 0."""
+    r = np.linspace(r0, r1, n_radial + 1)
+    ang = np.arange(n_angular) * (2 * np.pi / n_angular)
+    R, A = np.meshgrid(r, ang, indexing="ij")
+    v = np.column_stack([(R * np.cos(A)).ravel(), (R * np.sin(A)).ravel(), np.zeros(R.size)])
+    idx = np.arange(R.size).reshape(R.shape)
+    a, b = idx[:-1], idx[1:]
+    a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    faces = np.vstack([np.column_stack([a.ravel(), b.ravel(), b1.ravel()]),
+                       np.column_stack([a.ravel(), b1.ravel(), a1.ravel()])])
+    return v, faces
+
+
+def _grid_quad(x0: float, x1: float, y0: float, y1: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rectangle in z = 0 split into n x n quads (for per-vertex refraction of large faces)."""
+    xs, ys = np.linspace(x0, x1, n + 1), np.linspace(y0, y1, n + 1)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    v = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    idx = np.arange(X.size).reshape(X.shape)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    faces = np.vstack([np.column_stack([a.ravel(), b.ravel(), c.ravel()]),
+                       np.column_stack([a.ravel(), c.ravel(), d.ravel()])])
+    return v, faces
+
+
+def _tube(radius: float, z0: float, z1: float, n_z: int, n_angular: int) -> tuple[np.ndarray, np.ndarray]:
+    """Open cylinder wall of ``radius`` from z0 to z1, split into n_z rings (per-vertex refraction)."""
+    z = np.linspace(z0, z1, n_z + 1)
+    ang = np.arange(n_angular) * (2 * np.pi / n_angular)
+    Z, A = np.meshgrid(z, ang, indexing="ij")
+    v = np.column_stack([(radius * np.cos(A)).ravel(), (radius * np.sin(A)).ravel(), Z.ravel()])
+    idx = np.arange(Z.size).reshape(Z.shape)
+    a, b = idx[:-1], idx[1:]
+    a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    faces = np.vstack([np.column_stack([a.ravel(), b.ravel(), b1.ravel()]),
+                       np.column_stack([a.ravel(), b1.ravel(), a1.ravel()])])
+    return v, faces
+
+
+def _merge(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    verts, faces, off = [], [], 0
+    for v, f in parts:
+        verts.append(v)
+        faces.append(f + off)
+        off += len(v)
+    return np.vstack(verts), np.vstack(faces)
+
+
+def _tile(v: np.ndarray, f: np.ndarray, n: int) -> np.ndarray:
+    """Faces of n copies of a template with V vertices each."""
+    return (f[None, :, :] + (np.arange(n) * len(v))[:, None, None]).reshape(-1, 3)
+
+
+def _chessboard_meshes(spec: ChessboardSpec, subdiv: int) -> tuple[tuple, tuple]:
+    """(black, white) meshes of the board in its frame (z = 0 face, -z facing)."""
+    cols, rows = spec.squares
+    s, m = spec.square_mm, spec.margin_mm
+    x0, y0 = -cols * s / 2.0, -rows * s / 2.0
+    black, white = [], []
+    for c in range(cols):
+        for r in range(rows):
+            q = _grid_quad(x0 + c * s, x0 + (c + 1) * s, y0 + r * s, y0 + (r + 1) * s, subdiv)
+            (black if (c + r) % 2 == 0 else white).append(q)
+    if m > 0:
+        X0, X1, Y0, Y1 = x0 - m, -x0 + m, y0 - m, -y0 + m
+        for rect in ((X0, X1, Y0 - 0, y0), (X0, X1, -y0, Y1), (X0, x0, y0, -y0), (-x0, X1, y0, -y0)):
+            white.append(_grid_quad(*rect, subdiv))
+    return _merge(black), _merge(white)
+
+
+# ----- views: the per-camera render geometry and lens maps -----------------------------------
+
+@dataclass
+class _View:
+    side: str
+    pose: np.ndarray               # sensor_from_camera (OpenCV axes)
+    centre: np.ndarray             # (3,)
+    f_render: tuple[float, float]
+    c_render: tuple[float, float]  # OpenCV principal point of the pinhole render
+    map1: np.ndarray
+    map2: np.ndarray
+    shade_module: np.ndarray       # (H_out, W_out, 1) float32: LED shading × vignetting
+    shade_lab: np.ndarray          # vignetting only (skin-less calibration)
+
+
+class StereoRenderer:
+    """Renders :class:`pipeline.types.StereoFrame` pairs of the twin's sensor (see module notes).
+
+    Parameters
+    ----------
+    design : SensorDesign
+        Cameras, stack, marker and pin sizes.
+    rng : numpy.random.Generator
+        Source of the sensor noise (one draw per rendered frame).
+    noise : bool
+        False renders noise-free frames (blur and shading still applied).
+    quality : "fast" | "high"
+        "fast": pinhole render at the output's centre resolution with 4x MSAA; "high": 2x the
+        resolution, distorted at 2x and area-averaged down (slower, for accuracy studies).
+
+    Notes
+    -----
+    One OpenGL context, one scene, meshes and lens maps are created once; each frame only uploads
+    new vertex positions. Pixels are OpenCV ``(u, v)``, centre of the top-left pixel at (0, 0).
+    """
+
+    def __init__(self, design: SensorDesign, *, rng: np.random.Generator, noise: bool = True,
+                 quality: str = "fast") -> None:
+        if not isinstance(rng, np.random.Generator):
+            raise RenderError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
+        if quality not in QUALITY_SCALE:
+            raise RenderError(f"quality: expected one of {sorted(QUALITY_SCALE)}, got {quality!r}")
+        self.design = design
+        self.rng = rng
+        self.noise = bool(noise)
+        self.quality = quality
+        self._focal_scale, self._scale = QUALITY_SCALE[quality]
+        self._stack = FlatStack.from_design(design)
+        self._air = FlatStack.from_design(design, through_stack=False)
+        self._w_out, self._h_out = design.cameras.width_px, design.cameras.height_px
+        self._pyrender = import_pyrender()
+        self._views, (self._w_r, self._h_r) = self._make_views()
+        self._renderer = offscreen_renderer(self._w_r, self._h_r)
+        self._scene = self._pyrender.Scene(bg_color=[*BACKGROUND_BGR, 1.0], ambient_light=[0.0, 0.0, 0.0])
+        self._cam_nodes = {}
+        for side, view in self._views.items():
+            cam = self._pyrender.IntrinsicsCamera(
+                fx=view.f_render[0], fy=view.f_render[1],
+                cx=view.c_render[0] + 0.5, cy=view.c_render[1] + 0.5,  # GL window coords: pixel centres at +0.5
+                znear=ZNEAR_MM, zfar=ZFAR_MM)
+            self._cam_nodes[side] = self._scene.add(cam, pose=gl_pose_from_cv_pose(view.pose))
+        self._nodes: dict[tuple[str, str], object] = {}    # (side, name) -> pyrender Node
+        self._static_done: set[str] = set()
+        self._frame_index = 0
+        self.last_timing_ms: dict[str, float] = {}
+        self._timing: dict[str, float] = {}
+
+    # ----- setup ---------------------------------------------------------------------------
+    def _make_views(self):
+        d = self.design
+        W, H = self._w_out * self._scale, self._h_out * self._scale
+        poses = d.camera_poses()
+        ideal, spans = {}, []
+        for side in SIDES:
+            cam = getattr(d.cameras, side)
+            # output pixel centres (at scale s, output pixel (u, v) of the 1x image is at s*u + (s-1)/2)
+            u = (np.arange(W) - (self._scale - 1) / 2.0) / self._scale
+            v = (np.arange(H) - (self._scale - 1) / 2.0) / self._scale
+            U, V = np.meshgrid(u, v)
+            xy = pixels_to_normalised(np.column_stack([U.ravel(), V.ravel()]), cam.K, cam.D)
+            ideal[side] = xy.reshape(H, W, 2)
+            spans.append((xy.min(axis=0), xy.max(axis=0)))
+        views, sizes = {}, []
+        for side in SIDES:
+            cam = getattr(d.cameras, side)
+            f = (cam.fx_px * self._focal_scale, cam.fy_px * self._focal_scale)
+            lo, hi = ideal[side].reshape(-1, 2).min(axis=0), ideal[side].reshape(-1, 2).max(axis=0)
+            c = (-lo[0] * f[0] + RENDER_MARGIN_PX, -lo[1] * f[1] + RENDER_MARGIN_PX)
+            sizes.append((int(math.ceil(hi[0] * f[0] + c[0] + RENDER_MARGIN_PX)),
+                          int(math.ceil(hi[1] * f[1] + c[1] + RENDER_MARGIN_PX))))
+            views[side] = (f, c)
+        w_r = max(s[0] for s in sizes)
+        h_r = max(s[1] for s in sizes)
+        out = {}
+        for side in SIDES:
+            f, c = views[side]
+            xy = ideal[side]
+            mx = (xy[..., 0] * f[0] + c[0]).astype(np.float32)
+            my = ((h_r - 1) - (xy[..., 1] * f[1] + c[1])).astype(np.float32)  # buffer is bottom-up
+            map1, map2 = cv2.convertMaps(mx, my, cv2.CV_16SC2)
+            pose = poses[side]
+            shade_module, shade_lab = self._shading(pose, xy)
+            out[side] = _View(side=side, pose=pose, centre=pose[:3, 3].copy(), f_render=f, c_render=c,
+                              map1=map1, map2=map2, shade_module=shade_module, shade_lab=shade_lab)
+        return out, (w_r, h_r)
+
+    def _led_positions(self) -> np.ndarray:
+        d = self.design
+        r = d.gel.radius_mm + LED_RADIAL_GAP_MM
+        ang = np.deg2rad(45.0 + 360.0 / LED_COUNT * np.arange(LED_COUNT))
+        return np.column_stack([r * np.cos(ang), r * np.sin(ang), np.full(LED_COUNT, d.acrylic_air_z_mm - 0.5)])
+
+    def _shading(self, pose: np.ndarray, xy_ideal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per output pixel: (LED shading × vignetting, vignetting), each (H, W, 1) float32 (at render scale)."""
+        d = self.design
+        H, W = xy_ideal.shape[:2]
+        rays_cam = np.concatenate([xy_ideal, np.ones((H, W, 1))], axis=2).reshape(-1, 3)
+        cos_field = 1.0 / np.linalg.norm(rays_cam, axis=1)
+        vignette = cos_field**VIGNETTE_POWER
+        d_sensor = rays_cam @ pose[:3, :3].T
+        z_marker = -d.marker_depth_mm
+        pts, _ = trace_forward(pose[:3, 3], d_sensor, self._stack, z_marker)
+        leds = self._led_positions()
+        E = np.zeros(len(pts))
+        for L in leds:
+            v = pts - L
+            d2 = np.sum(v * v, axis=1)
+            E += v[:, 2] ** 2 / d2**2            # Lambertian LED (cos) × Lambertian face (cos) / d²
+        centre = np.array([[0.0, 0.0, z_marker]])
+        E0 = sum(float((centre[0, 2] - L[2]) ** 2 / np.sum((centre[0] - L) ** 2) ** 2) for L in leds)
+        led = np.clip((E / E0) ** LED_GAMMA, *LED_SHADING_RANGE)
+        module = (led * vignette).reshape(H, W, 1).astype(np.float32)
+        lab = vignette.reshape(H, W, 1).astype(np.float32)
+        return module, lab
+
+    def _material(self, bgr):
+        return self._pyrender.MetallicRoughnessMaterial(baseColorFactor=[float(c) for c in bgr] + [1.0],
+                                                        metallicFactor=0.0, roughnessFactor=1.0,
+                                                        doubleSided=True)
+
+    def _set_mesh(self, side: str, name: str, positions: np.ndarray, faces: np.ndarray, bgr) -> None:
+        """Create or update the mesh ``name`` of camera ``side`` (vertex upload if the topology is unchanged)."""
+        key = (side, name)
+        node = self._nodes.get(key)
+        positions = np.asarray(positions, dtype=np.float32)
+        if node is not None:
+            prim = node.mesh.primitives[0]
+            if prim.positions.shape == positions.shape and prim.indices.shape == faces.shape \
+                    and np.array_equal(prim.indices, faces):
+                upload_positions(self._renderer, prim, positions)
+                return
+            self._scene.remove_node(node)
+        prim = self._pyrender.Primitive(positions=positions, indices=np.asarray(faces, dtype=np.uint32),
+                                        material=self._material(bgr), mode=4)  # GL_TRIANGLES
+        mesh = self._pyrender.Mesh([prim], is_visible=False)
+        self._nodes[key] = self._scene.add(mesh, name=f"{side}:{name}")
+
+    def _refracted(self, side: str, pts: np.ndarray, through_stack: bool) -> np.ndarray:
+        if not through_stack:
+            return pts
+        return apparent_points(pts, self._views[side].centre, self._stack)
+
+    def _ensure_module_static(self) -> None:
+        """Mount ring, LEDs and (when no skin mesh is given) the flat skin underside; refracted once."""
+        if "module" in self._static_done:
+            return
+        d = self.design
+        ring_v, ring_f = _annulus(d.gel.radius_mm, MOUNT_OUTER_RADIUS_MM, 12, 96)
+        ring_v[:, 2] = d.gel_acrylic_z_mm - 1e-3         # rests on the acrylic, seen through it
+        wall_v, wall_f = _tube(d.gel.radius_mm, d.gel_acrylic_z_mm, -d.skin.thickness_mm, 8, 96)
+        mount_v, mount_f = _merge([(ring_v, ring_f), (wall_v, wall_f)])   # + its inner wall around the gel
+        led_parts = []
+        for L in self._led_positions():
+            v, f = _disc(1.5, 16)
+            led_parts.append((v + L, f))
+        led_v, led_f = _merge(led_parts)
+        skin_v, skin_f = _annulus(0.0, d.gel.radius_mm, 20, 96)
+        skin_v[:, 2] = -d.skin.thickness_mm
+        for side in SIDES:
+            self._set_mesh(side, "mount", self._refracted(side, mount_v, True), mount_f, MOUNT_BGR)
+            self._set_mesh(side, "leds", led_v, led_f, LED_BGR)
+            self._set_mesh(side, "skin_flat", self._refracted(side, skin_v, True), skin_f, SKIN_BGR)
+        self._static_done.add("module")
+
+    # ----- rendering --------------------------------------------------------------------------
+    def _render_view(self, side: str, visible: set[str], lab: bool) -> np.ndarray:
+        t0 = time.perf_counter()
+        for (s, name), node in self._nodes.items():
+            node.mesh.is_visible = (s == side and name in visible)
+        self._scene.main_camera_node = self._cam_nodes[side]
+        self._scene.bg_color = np.array([*(LAB_BACKGROUND_BGR if lab else BACKGROUND_BGR), 1.0])
+        flags = self._pyrender.RenderFlags.FLAT | self._pyrender.RenderFlags.SKIP_CULL_FACES
+        buf = self._renderer.render(self._scene, flags=flags)
+        t1 = time.perf_counter()
+        view = self._views[side]
+        img = cv2.remap(buf, view.map1, view.map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR).astype(np.float32)
+        img *= view.shade_lab if lab else view.shade_module
+        if self._scale > 1:
+            img = cv2.resize(img, (self._w_out, self._h_out), interpolation=cv2.INTER_AREA)
+        self._timing[f"gl_{side}"] = (t1 - t0) * 1e3
+        self._timing[f"lens_{side}"] = (time.perf_counter() - t1) * 1e3
+        return img
+
+    def _finish(self, views: list[np.ndarray], source: str) -> StereoFrame:
+        t0 = time.perf_counter()
+        out = []
+        for img in views:
+            img = cv2.GaussianBlur(img, (0, 0), BLUR_SIGMA_PX)
+            if self.noise:
+                # One normal field per view, scaled per channel by the signal-dependent σ (the channels of
+                # a demosaiced Bayer sensor share most of their noise): σ² = g·I + σ_read².
+                z = self.rng.standard_normal(img.shape[:2], dtype=np.float32)[..., None]
+                sigma = cv2.sqrt(img * np.float32(SHOT_GAIN_DN_PER_E) + np.float32(READ_NOISE_DN**2))
+                img += z * sigma
+            img += np.float32(0.5)
+            out.append(cv2.convertScaleAbs(np.clip(img, 0.0, 255.0, out=img)))
+        frame = StereoFrame.from_pair(out[0], out[1], timestamp_s=0.0, index=self._frame_index, source=source)
+        self._frame_index += 1
+        self._timing["photometry"] = (time.perf_counter() - t0) * 1e3
+        self.last_timing_ms = dict(self._timing)
+        self._timing.clear()
+        return frame
+
+    def render_markers(self, marker_xyz_mm: np.ndarray, marker_axis: np.ndarray, *,
+                       skin_vertices_mm: np.ndarray | None = None,
+                       skin_faces: np.ndarray | None = None) -> StereoFrame:
+        """Render the installed skin module: markers on pins in the gel, behind acrylic + gel.
+
+        Parameters
+        ----------
+        marker_xyz_mm : (N, 3) float
+            Marker face centres (the face seen by the cameras), sensor frame, mm.
+        marker_axis : (N, 3) float
+            Unit pin directions from the skin toward the marker (≈ (0, 0, −1) at rest). The disc's
+            thickness and the pin extend from the face back along −axis.
+        skin_vertices_mm, skin_faces : (V, 3) float, (F, 3) int, optional
+            The deformed OUTER skin surface; its underside (offset by the skin thickness along the
+            vertex normals) is drawn dark. Without it a flat underside at z = −T is drawn.
+
+        Returns
+        -------
+        StereoFrame
+            1280x480 BGR, left | right.
+        """
+        d = self.design
+        P = np.asarray(marker_xyz_mm, dtype=np.float64)
+        A = np.asarray(marker_axis, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3 or not np.all(np.isfinite(P)):
+            raise RenderError(f"marker_xyz_mm: expected a finite (N, 3) array, got shape {P.shape}")
+        if A.shape != P.shape or not np.all(np.isfinite(A)):
+            raise RenderError(f"marker_axis: expected a finite array of shape {P.shape}, got {A.shape}")
+        if np.any(P[:, 2] <= d.gel_acrylic_z_mm):
+            raise RenderError(f"marker_xyz_mm: markers must lie in the gel (z > {d.gel_acrylic_z_mm:.2f} mm)")
+        if (skin_vertices_mm is None) != (skin_faces is None):
+            raise RenderError("skin_vertices_mm and skin_faces must be given together")
+        self._ensure_module_static()
+        t = d.markers.thickness_mm
+        face_v, face_f = _disc(d.markers.diameter_mm / 2.0, DISC_SECTIONS)      # the face, z = 0
+        wall_v, wall_f = _cylinder(d.markers.diameter_mm / 2.0, 0.0, t, DISC_SECTIONS, cap0=False, cap1=False)
+        pin_v, pin_f = _cylinder(d.pins.diameter_mm / 2.0, t / 2.0, d.pins.height_mm, PIN_SECTIONS, cap1=False)
+        R = marker_rotations(A)
+        n = len(P)
+        parts = {}
+        for name, (v, f) in (("marker_face", (face_v, face_f)), ("marker_wall", (wall_v, wall_f)),
+                             ("pins", (pin_v, pin_f))):
+            world = (P[:, None, :] + np.einsum("nij,vj->nvi", R, v)).reshape(-1, 3)
+            parts[name] = (world, _tile(v, f, n))
+        names = ["mount", "leds", "marker_face", "marker_wall", "pins"]
+        if skin_vertices_mm is not None:
+            sv, sf = _skin_underside(skin_vertices_mm, skin_faces, d.skin.thickness_mm)
+            parts["skin"] = (sv, sf)
+            names.append("skin")
+        else:
+            names.append("skin_flat")
+        colours = {"marker_face": MARKER_BGR, "marker_wall": MARKER_SIDE_BGR, "pins": PIN_BGR, "skin": SKIN_BGR}
+        order = list(parts)
+        all_world = np.vstack([parts[k][0] for k in order])
+        splits = np.cumsum([len(parts[k][0]) for k in order])[:-1]
+        views = []
+        for side in SIDES:
+            t0 = time.perf_counter()
+            apparent = np.split(self._refracted(side, all_world, True), splits)
+            t1 = time.perf_counter()
+            for name, app in zip(order, apparent):
+                self._set_mesh(side, name, app, parts[name][1], colours[name])
+            t2 = time.perf_counter()
+            views.append(self._render_view(side, set(names), lab=False))
+            self._timing[f"refract_{side}"] = (t1 - t0) * 1e3
+            self._timing[f"upload_{side}"] = (t2 - t1) * 1e3
+        return self._finish(views, source=f"twin:{d.name}:markers")
+
+    def render_board(self, kind: str, sensor_from_board: np.ndarray, *, through_stack: bool,
+                     board_design=None) -> StereoFrame:
+        """Render a skin-less board: a chessboard or a flat board printed with the marker pattern.
+
+        Parameters
+        ----------
+        kind : "chessboard" | "marker_board"
+        sensor_from_board : (4, 4) float
+            Board pose in the sensor frame, mm. The printed face is the board frame's z = 0 plane and
+            faces the board's −z (see :class:`ChessboardSpec`; the marker board's dots sit at the
+            design's rest marker x-y).
+        through_stack : bool
+            False: the whole skin module is removed (calibration set-up, lab background, no LEDs).
+            True: acrylic + gel between cameras and board (board pressed against the gel, no skin);
+            the board must then lie inside the gel.
+        board_design : ChessboardSpec | SensorDesign | None
+            Chessboard geometry (default 9x7 squares of 4 mm) or the design whose marker pattern is
+            printed (default: this renderer's design).
+        """
+        d = self.design
+        T = np.asarray(sensor_from_board, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+            raise RenderError(f"sensor_from_board: expected a finite (4, 4) rigid transform, got shape {T.shape}")
+        if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6):
+            raise RenderError("sensor_from_board: rotation part is not orthonormal")
+        if kind == "chessboard":
+            spec = board_design if board_design is not None else ChessboardSpec()
+            if not isinstance(spec, ChessboardSpec):
+                raise RenderError(f"board_design: a chessboard needs a ChessboardSpec, got {type(spec).__name__}")
+            (bv, bf), (wv, wf) = _chessboard_meshes(spec, subdiv=4 if through_stack else 1)
+            meshes = {"chess_black": (bv, bf, BOARD_BLACK_BGR), "chess_white": (wv, wf, BOARD_WHITE_BGR)}
+        elif kind == "marker_board":
+            bd = board_design if board_design is not None else d
+            if not isinstance(bd, SensorDesign):
+                raise RenderError(f"board_design: a marker board needs a SensorDesign, got {type(bd).__name__}")
+            xy = bd.rest_markers_mm()[:, :2]
+            dv, df = _disc(bd.markers.diameter_mm / 2.0, DISC_SECTIONS)
+            dots_v = (np.column_stack([xy, np.zeros(len(xy))])[:, None, :] + dv[None]).reshape(-1, 3)
+            back_v, back_f = _annulus(0.0, bd.gel.radius_mm, 24, 128)
+            back_v[:, 2] = 0.02                              # just behind the printed face
+            meshes = {"mboard_dots": (dots_v, _tile(dv, df, len(xy)), MARKER_BGR),
+                      "mboard_back": (back_v, back_f, BOARD_BLACK_BGR)}
+        else:
+            raise RenderError(f"kind: expected 'chessboard' or 'marker_board', got {kind!r}")
+        world = {name: (v @ T[:3, :3].T + T[:3, 3], f, c) for name, (v, f, c) in meshes.items()}
+        names = set(meshes)
+        if through_stack:
+            lowest = min(float(w.min(axis=0)[2]) for w, _, _ in world.values())
+            if lowest <= d.gel_acrylic_z_mm:
+                raise RenderError(f"sensor_from_board: with through_stack=True the board must lie inside the gel "
+                                  f"(z > {d.gel_acrylic_z_mm:.2f} mm); its lowest point is at z = {lowest:.2f} mm")
+            self._ensure_module_static()
+            names |= {"mount", "leds"}
+        else:
+            for side in SIDES:
+                zmin = min(float(((w - self._views[side].centre) @ self._views[side].pose[:3, 2]).min())
+                           for w, _, _ in world.values())
+                if zmin <= ZNEAR_MM:
+                    raise RenderError(f"sensor_from_board: the board reaches behind or too close to the {side} "
+                                      f"camera ({zmin:.2f} mm in front of it)")
+        views = []
+        for side in SIDES:
+            for name, (w, f, c) in world.items():
+                self._set_mesh(side, name, self._refracted(side, w, through_stack), f, c)
+            views.append(self._render_view(side, names, lab=not through_stack))
+        return self._finish(views, source=f"twin:{d.name}:{kind}")
+
+
+def _skin_underside(vertices_mm, faces, thickness_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Underside of the skin: outer vertices moved by the thickness against their area-weighted normals."""
+    v = np.asarray(vertices_mm, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
+        raise RenderError(f"skin_vertices_mm: expected a finite (V, 3) array, got shape {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu" or (f.size and (f.min() < 0 or f.max() >= len(v))):
+        raise RenderError(f"skin_faces: expected (F, 3) integer indices into the {len(v)} skin vertices")
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    if np.sum(vn[:, 2]) < 0:
+        vn = -vn
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    vn = np.where(norm > 0, vn / np.maximum(norm, 1e-300), np.array([0.0, 0.0, 1.0]))
+    return v - thickness_mm * vn, f.astype(np.uint32)
+
+
+# ----- calibration boards ---------------------------------------------------------------------
+
+def _board_in_view(design: SensorDesign, T: np.ndarray, spec: ChessboardSpec, margin_px: float) -> bool:
+    pts = chessboard_corners_mm(spec)
+    # add a ring of points half a square beyond the inner corners: the detector needs the outer squares
+    cols, rows = spec.squares
+    hx, hy = cols * spec.square_mm / 2.0, rows * spec.square_mm / 2.0
+    outline = np.array([[sx * hx, sy * hy, 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    P = np.vstack([pts, outline]) @ T[:3, :3].T + T[:3, 3]
+    w, h = design.cameras.width_px, design.cameras.height_px
+    for side, pose in design.camera_poses().items():
+        depth = (P - pose[:3, 3]) @ pose[:3, 2]
+        if np.any(depth <= 5.0):
+            return False
+        # the board faces the camera (its -z normal points toward the camera centre)
+        normal = -T[:3, 2]
+        if np.dot(pose[:3, 3] - T[:3, 3], normal) <= 0:
+            return False
+        uv = project_exact(P, design, side, through_stack=False)
+        if np.any(uv < margin_px) or np.any(uv[:, 0] > w - 1 - margin_px) or np.any(uv[:, 1] > h - 1 - margin_px):
+            return False
+    return True
+
+
+def chessboard_poses(n: int, rng: np.random.Generator, *, design: SensorDesign | None = None,
+                     spec: ChessboardSpec = ChessboardSpec(), distance_mm: tuple[float, float] = (20.0, 60.0),
+                     max_tilt_deg: float = 30.0, margin_px: float = 12.0) -> list[np.ndarray]:
+    """``n`` varied chessboard poses (sensor_from_board, 4x4 mm) fully visible in both cameras.
+
+    Board centre at a distance drawn uniformly from ``distance_mm`` above the midpoint of the cameras,
+    shifted sideways, rotated about z by any angle and tilted up to ``max_tilt_deg`` about a random
+    horizontal axis; poses whose board (corners plus outer squares) leaves either image by less than
+    ``margin_px`` are redrawn. The default design is ``hexagon127``.
+    """
+    from pipeline.design import load_design  # noqa: PLC0415
+
+    if n < 0:
+        raise RenderError(f"n: expected >= 0, got {n}")
+    design = design if design is not None else load_design("hexagon127")
+    cam_z = design.camera_z_mm
+    poses: list[np.ndarray] = []
+    tries = 0
+    while len(poses) < n:
+        tries += 1
+        if tries > 2000 * max(n, 1):
+            raise RenderError(f"chessboard_poses: could not place {n} boards in view (distance {distance_mm} mm, "
+                              f"tilt {max_tilt_deg} deg); widen the distance range")
+        dist = rng.uniform(*distance_mm)
+        half_w = 0.35 * dist
+        centre = np.array([rng.uniform(-half_w, half_w), rng.uniform(-0.7 * half_w, 0.7 * half_w), cam_z + dist])
+        yaw = rng.uniform(-np.pi, np.pi)
+        tilt = np.deg2rad(max_tilt_deg) * math.sqrt(rng.uniform(0.0, 1.0))
+        tilt_dir = rng.uniform(-np.pi, np.pi)
+        axis = np.array([math.cos(tilt_dir), math.sin(tilt_dir), 0.0])
+        Rz = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1.0]])
+        Rt = cv2.Rodrigues(axis * tilt)[0]
+        T = np.eye(4)
+        T[:3, :3] = Rt @ Rz
+        T[:3, 3] = centre
+        if _board_in_view(design, T, spec, margin_px):
+            poses.append(T)
+    return poses
+
+
+def render_chessboard_pairs(design: SensorDesign, n: int, rng: np.random.Generator, *,
+                            poses: list[np.ndarray] | None = None, progress: bool = True) -> list[StereoFrame]:
+    """``n`` skin-less chessboard stereo frames (the paper's 20-pair calibration), poses from ``rng``."""
+    from tqdm import tqdm  # noqa: PLC0415
+
+    poses = chessboard_poses(n, rng, design=design) if poses is None else list(poses)
+    renderer = StereoRenderer(design, rng=rng)
+    frames = []
+    for i, T in enumerate(tqdm(poses, desc="chessboard pairs", disable=not progress or len(poses) < 5)):
+        f = renderer.render_board("chessboard", T, through_stack=False)
+        frames.append(StereoFrame(f.image, timestamp_s=float(i), index=i, source=f"twin:{design.name}:chessboard"))
+    return frames
