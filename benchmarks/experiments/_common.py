@@ -1,0 +1,124 @@
+"""Scoring helpers shared by the experiments (truth is only ever read here, after the pipeline ran).
+
+All positions are sensor frame, mm (see :mod:`pipeline.design`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "interp_heightmap",
+    "true_skin_height",
+    "identity_correct",
+    "radial_rms",
+    "rms",
+    "gaussian_curvature_profile",
+    "reconstruct",
+    "twin_calibration",
+    "make_indenter",
+    "surface_grid",
+]
+
+
+def rms(x: np.ndarray) -> float:
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+
+def interp_heightmap(hm, xy_mm: np.ndarray) -> np.ndarray:
+    """Bilinear height of a ``HeightMap`` at points ``xy_mm`` (N, 2); NaN outside or where it has no data."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    f = RegularGridInterpolator((np.asarray(hm.y_mm), np.asarray(hm.x_mm)), np.asarray(hm.z_mm),
+                                bounds_error=False, fill_value=np.nan)
+    xy_mm = np.asarray(xy_mm, dtype=np.float64).reshape(-1, 2)
+    return f(xy_mm[:, ::-1])
+
+
+def true_skin_height(truth, xy_mm: np.ndarray) -> np.ndarray:
+    """z of the twin's deformed outer skin at ``xy_mm`` (N, 2): linear interpolation over the skin
+    mesh vertices seen from above (the outer skin is a height field over x-y); NaN outside."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    v = np.asarray(truth.skin_vertices_mm, dtype=np.float64)
+    f = LinearNDInterpolator(v[:, :2], v[:, 2])
+    return f(np.asarray(xy_mm, dtype=np.float64).reshape(-1, 2))
+
+
+def identity_correct(ids: np.ndarray, xyz_mm: np.ndarray, truth, max_dist_mm: float) -> np.ndarray:
+    """Per reported marker: True when the nearest truth marker to its 3-D position has the same id
+    and lies within ``max_dist_mm`` (half the marker separation: a closer wrong marker is impossible)."""
+    from scipy.spatial import cKDTree
+
+    ids = np.asarray(ids)
+    if len(ids) == 0:
+        return np.zeros(0, dtype=bool)
+    tree = cKDTree(np.asarray(truth.marker_xyz_mm))
+    d, j = tree.query(np.asarray(xyz_mm))
+    truth_ids = np.asarray(truth.marker_ids)[j]
+    return (truth_ids == ids) & (d <= max_dist_mm)
+
+
+def radial_rms(r_mm: np.ndarray, err_mm: np.ndarray, edges_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RMS of ``err_mm`` in radial bins ``edges_mm``; returns (bin centres, rms) with NaN for empty bins."""
+    centres = 0.5 * (edges_mm[1:] + edges_mm[:-1])
+    out = np.full(len(centres), np.nan)
+    k = np.digitize(r_mm, edges_mm) - 1
+    for i in range(len(centres)):
+        sel = (k == i) & np.isfinite(err_mm)
+        if np.any(sel):
+            out[i] = np.sqrt(np.mean(err_mm[sel] ** 2))
+    return centres, out
+
+
+def gaussian_curvature_profile(r_mm: np.ndarray, h_mm: float, sigma2_mm2: float) -> np.ndarray:
+    """Curvature (1/mm) of the profile z = h·exp(−r²/2σ²) at radius r: |z''| / (1 + z'²)^{3/2}."""
+    e = np.exp(-(r_mm**2) / (2 * sigma2_mm2))
+    dz = -h_mm * r_mm / sigma2_mm2 * e
+    d2z = h_mm * e * (r_mm**2 / sigma2_mm2 - 1.0) / sigma2_mm2
+    return np.abs(d2z) / (1 + dz**2) ** 1.5
+
+
+def twin_calibration(design):
+    """The twin's true stereo calibration (the experiments other than camera-calibration use it, so
+    their numbers measure reconstruction, not chessboard calibration error)."""
+    from twin.render import true_calibration
+
+    return true_calibration(design)
+
+
+def reconstruct(design, calib, frames, **kw: Any):
+    """Run frames in order through one :class:`pipeline.runner.Reconstructor`; list of FrameResult."""
+    from pipeline.runner import Reconstructor
+
+    rec = Reconstructor(design, calib, **kw)
+    return [rec.process(f) for f in frames]
+
+
+def make_indenter(name: str, **params: Any):
+    """An indenter from the twin's registry (``twin.indenters``) by name and parameters."""
+    from twin import indenters
+
+    return indenters.make_indenter(name, **params)
+
+
+def surface_grid(surface, truth, radius_mm: float, step_mm: float = 0.5) -> dict[str, np.ndarray]:
+    """Reconstructed skin, true skin and indenter heights on one grid inside ``radius_mm``.
+
+    The reconstruction is resampled with the pipeline's own :func:`pipeline.surface.height_map`
+    (what a user gets); truth is interpolated from the twin's skin mesh and indenter height map.
+    Returns flat arrays ``x, y, r`` (mm) and ``z_rec, z_skin, z_ind`` (mm, NaN where undefined).
+    """
+    from pipeline.surface import height_map
+
+    ax = np.arange(-radius_mm, radius_mm + 1e-9, step_mm)
+    hm = height_map(surface, ax, ax, mask_radius_mm=radius_mm)
+    gx, gy = np.meshgrid(ax, ax)
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    return {"x": xy[:, 0], "y": xy[:, 1], "r": np.hypot(xy[:, 0], xy[:, 1]),
+            "z_rec": np.asarray(hm.z_mm).ravel(), "z_skin": true_skin_height(truth, xy),
+            "z_ind": interp_heightmap(truth.indenter, xy)}

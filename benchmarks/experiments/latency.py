@@ -1,0 +1,84 @@
+"""latency: raw stereo frame → reconstructed skin surface, per stage (wraps ``pipeline.latency``).
+
+Paper (Sec. III-C): 283 ms on average from a raw image to a reconstructed surface (Ryzen 7 5800X).
+``pipeline.latency.run_latency`` times the unchanged Reconstructor on analytic synthetic frames with
+OpenCV limited to one thread; this experiment records its numbers with units and draws the stage
+breakdown. Latency is machine-dependent: the CI threshold is a loose regression guard, not a claim.
+"""
+
+from __future__ import annotations
+
+from benchmarks.registry import Context, Finding, PaperValue, Result, register
+from benchmarks.results import COLUMN_IN, paper_style, save_figure
+
+DESIGNS = ("hexagon127", "circular217_dome")
+PAPER_MS = 283.0
+
+
+def _key(name: str) -> str:
+    return {"hexagon127": "hexagon127", "circular217_dome": "circular217"}.get(name, name)
+
+
+@register(
+    "latency",
+    tags=("quick", "paper", "cheap"),
+    metrics={
+        "median_total_ms": "ms",
+        "p95_total_ms": "ms",
+        **{f"median_total_ms_{_key(d)}": "ms" for d in DESIGNS},
+        **{f"p95_total_ms_{_key(d)}": "ms" for d in DESIGNS},
+        "matched_min": "1",
+        "frames_per_design": "1",
+    },
+    requires=("pipeline.latency", "pipeline.runner", "pipeline.dtrc", "pipeline.detection"),
+    paper={"median_total_ms": PaperValue(PAPER_MS, "ms", "Sec. III-C: average latency, raw image to surface, Ryzen 7 5800X")},
+)
+def run(ctx: Context) -> Result:
+    """Pipeline latency per stage on synthetic frames (one OpenCV thread) vs the paper's 283 ms."""
+    from pipeline.design import load_design
+    from pipeline.latency import run_latency
+
+    names = tuple(ctx.param("designs", DESIGNS))
+    n_frames = int(ctx.param("n_frames", 200, quick=40))
+    raw = run_latency(names, n_frames, ctx.out_dir / "latency_raw", seed=ctx.seed, progress=ctx.progress)
+    out = Result(designs=[load_design(n) for n in names])
+    medians, p95s, matched = [], [], []
+    rows = []
+    for name, rec in raw["designs"].items():
+        total = rec["stages"]["total"]
+        medians.append(total["median_ms"])
+        p95s.append(total["p95_ms"])
+        matched.append(rec["matched_min"] / rec["markers"])
+        out.metric(f"median_total_ms_{_key(name)}", total["median_ms"], "ms")
+        out.metric(f"p95_total_ms_{_key(name)}", total["p95_ms"], "ms")
+        for stage, st in rec["stages"].items():
+            rows.append({"design": name, "stage": stage, **st})
+    out.metric("median_total_ms", max(medians), "ms")
+    out.metric("p95_total_ms", max(p95s), "ms")
+    out.metric("matched_min", min(matched), "1")
+    out.metric("frames_per_design", n_frames, "1")
+    out.tables["stages"] = rows
+    m = raw.get("machine", {})
+    out.notes.append(f"Machine: {m.get('processor', '?')}, {m.get('cpu_count', '?')} logical CPUs (shared), "
+                     f"OpenCV {m.get('opencv', '?')} with 1 thread; refraction '{raw.get('refraction', '?')}'; "
+                     f"{n_frames} frames per design after one warm-up frame; synthetic frames (pipeline.synthetic).")
+    out.findings.append(Finding(f"the pipeline reconstructs a frame in about {PAPER_MS:.0f} ms",
+                                f"median {max(medians):.1f} ms (worst design), p95 {max(p95s):.1f} ms on this machine",
+                                bool(max(medians) <= PAPER_MS)))
+
+    with paper_style() as plt:
+        fig, ax = plt.subplots(figsize=(COLUMN_IN, 2.2))
+        stages = [s for s in raw["designs"][names[0]]["stages"] if s != "total"]
+        for k, name in enumerate(names):
+            st = raw["designs"][name]["stages"]
+            left = 0.0
+            for j, s in enumerate(stages):
+                v = st.get(s, {}).get("median_ms", 0.0)
+                ax.barh(k, v, left=left, color=f"C{j}", label=s if k == 0 else None)
+                left += v
+        ax.axvline(PAPER_MS, color="k", ls=":", lw=0.8, label=f"paper {PAPER_MS:.0f} ms")
+        ax.set_yticks(range(len(names)), names)
+        ax.set_xlabel("median latency per stage (ms)")
+        ax.legend(fontsize=6, loc="lower right")
+        out.figures.append(save_figure(fig, ctx.figure_path("latency")))
+    return out
