@@ -1,0 +1,418 @@
+"""The terrain demonstration (paper, "Experiments III"): tap-scan the world relief, merge, score.
+
+For each region (``twin.terrain.REGIONS``): zigzag tap centres with 15 mm steps over the region's box;
+each tap lowers the downward-facing sensor from global z = 8 mm to the tap plane (the paper: z = 0,
+sea level) and records the skin as points in the SENSOR frame; the points go to the global frame by
+the tap pose (``pipeline.merge.tap_points_to_global``), are merged with the paper's overlap rule and
+mollified (``pipeline.merge.merge_taps``), gridded, and compared with the DEM-derived truth.
+
+Tap back ends (``sensor=``):
+
+* ``"ideal"`` — a perfectly conforming skin read out at the design's rest marker x-y positions:
+  z_skin = max(relief, tap plane) in the global frame. No physics, no optics: it measures what the
+  scan geometry, marker sampling and merge alone allow, and is the upper bound of any real sensor.
+* ``"twin"`` — the digital twin: ``twin.terrain.tap_indenter`` -> ``twin.simulate.press`` (MuJoCo skin)
+  -> ``twin.render.StereoRenderer`` -> the unchanged pipeline (``pipeline.runner.Reconstructor``) ->
+  skin points. Needs those modules (another engineer's work); see :func:`_twin_tap`.
+
+Outputs in ``out_dir``: ``taps/<region>_<k>.npz`` (one per finished tap: resumable), per region
+``<region>_height.npz`` (pipeline HeightMap, global frame), ``<region>_points.ply``, ``<region>.png``
+(truth | reconstruction | error), ``world.png``, and ``terrain.json`` (metrics, tap counts, wall time).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import json
+import multiprocessing
+import os
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.merge import (MOLLIFIER_EPS_MM, OVERLAP_THRESHOLD_MM, grid_points, merge_taps,
+                            tap_points_to_global)
+from pipeline.types import HeightMap
+
+__all__ = ["DESIGN_NAME", "DESIGN_OVERRIDES", "TapJob", "plan_jobs", "run_tap", "score_region",
+           "run_scan", "FEATURE_CRITERIA"]
+
+DESIGN_NAME = "hexagon217_sep180"               # the paper's "dense markers"
+DESIGN_OVERRIDES = {"skin.thickness_mm": 0.5}   # the paper's terrain sensor: skin 0.5 mm
+GRID_STEP_MM = 0.25                              # output grid, = the mollifier's eps
+MAX_GAP_MM = 2.0                                 # > marker spacing 1.8 mm: no holes between markers
+QUICK_REGIONS = ("drake", "english_channel")     # --quick: two small regions, few taps
+
+# Measurable criteria for "feature resolved" (one table, printed into terrain.json).
+PEAK_TOL_MM = 0.3          # mountains: |recon peak - true peak| (about the paper's Gaussian-peak errors)
+WIDTH_RATIO_RANGE = (0.8, 1.25)   # mountains: recon / true mean width at half height
+CONTRAST_FRACTION = 0.5    # seas/channels: recon land-sea contrast >= 50 % of the reachable contrast
+MIN_CONTRAST_MM = 0.1      # ... and at least 0.1 mm (below that a sea is "barely visible")
+FEATURE_CRITERIA = {
+    "mountains": f"peak height within {PEAK_TOL_MM} mm of the DEM's AND mean width at half height "
+                 f"(per map row, cells above half the row's maximum) within {WIDTH_RATIO_RANGE} of the DEM's",
+    "sea": f"land-sea contrast (90th percentile of land cells - median of sea cells) of the reconstruction "
+           f">= {CONTRAST_FRACTION:.0%} of the reachable truth's (DEM clipped at the tap plane) AND >= {MIN_CONTRAST_MM} mm",
+    "channel": "as 'sea' (the channel's water cells against the land on its shores)",
+}
+
+
+class TerrainScanError(UserError, ValueError):
+    """Bad terrain-scan options (unknown region or sensor back end, missing twin modules)."""
+
+
+@dataclass(frozen=True)
+class TapJob:
+    region: str
+    index: int
+    centre_mm: tuple[float, float]      # map/global x, y of the tap
+    tap_z_mm: float                     # global z of the undeformed skin at the bottom of the tap
+    sensor: str
+    seed: int
+    path: str                           # where the finished tap is written
+
+    def origin_mm(self) -> np.ndarray:
+        return np.array([self.centre_mm[0], self.centre_mm[1], self.tap_z_mm])
+
+
+def _design():
+    from pipeline.design import load_design
+
+    return load_design(DESIGN_NAME).with_overrides(DESIGN_OVERRIDES)
+
+
+def plan_jobs(regions: Sequence[str], out_dir: Path, *, sensor: str, tap_z_mm: float = 0.0,
+              step_mm: float = 15.0, seed: int = 0, max_taps: int | None = None) -> dict[str, list[TapJob]]:
+    """Tap jobs per region (zigzag order), each with its own output file under ``out_dir/taps``."""
+    from twin.terrain import plan_scan, region
+
+    jobs: dict[str, list[TapJob]] = {}
+    for key in regions:
+        r = region(key)
+        centres = plan_scan(r.box_mm(), step_mm=step_mm)
+        if max_taps is not None:
+            centres = centres[:max_taps]
+        jobs[key] = [TapJob(key, k, (float(c[0]), float(c[1])), float(tap_z_mm), sensor, seed * 100003 + k,
+                            str(out_dir / "taps" / f"{key}_{k:03d}.npz")) for k, c in enumerate(centres)]
+    return jobs
+
+
+# ----- one tap ------------------------------------------------------------------------------
+
+def _ideal_tap(job: TapJob) -> np.ndarray:
+    """Skin points (sensor frame) of a perfectly conforming skin at the rest marker x-y."""
+    from twin.terrain import load_terrain_map
+
+    xy = _design().rest_markers_mm()[:, :2]
+    # sensor (x_s, y_s) of the downward-facing sensor looks at global (cx + x_s, cy - y_s)
+    # (twin.terrain.tap_indenter); the object there sits at sensor z = tap_z - relief
+    h = load_terrain_map().sample_z_mm(job.centre_mm[0] + xy[:, 0], job.centre_mm[1] - xy[:, 1], frame="global")
+    z_obj = job.tap_z_mm - h
+    # the skin (rest at z = 0) is pushed back wherever the object is behind z = 0
+    return np.column_stack([xy, np.minimum(z_obj, 0.0)])
+
+
+def _twin_tap(job: TapJob) -> np.ndarray:
+    """Skin points (sensor frame) from the digital twin and the unchanged pipeline.
+
+    Integration point with the twin (``twin.simulate``, ``twin.render``, ``twin.indenters``) and the
+    pipeline's runner, coded against docs/ARCHITECTURE.md: the terrain patch under the sensor is a
+    ``terrain`` indenter (HeightMap in the sensor frame at the bottom of the tap); the sensor is
+    pressed onto it and the rest and pressed frames go through ``Reconstructor``.
+    """
+    try:
+        from twin import indenters, render, simulate
+        from pipeline.runner import Reconstructor
+    except ImportError as exc:
+        raise TerrainScanError(f"sensor 'twin' needs the twin's physics/renderer ({exc}); use --sensor ideal") from None
+    from twin.terrain import load_terrain_map, tap_indenter
+
+    design = _design()
+    tmap = load_terrain_map()
+    # indenter surface at the bottom of the tap (sensor frame); depth is how far the relief's highest
+    # point under the sensor is pushed past the rest skin
+    bottom = tap_indenter(tmap, job.centre_mm, skin_z_mm=job.tap_z_mm, radius_mm=design.gel.radius_mm + 2.0,
+                          spacing_mm=0.2)
+    depth = max(0.0, -float(np.nanmin(bottom.z_mm)))
+    rest_surface = HeightMap(bottom.x_mm, bottom.y_mm, bottom.z_mm + depth)
+    indenter = indenters.make_indenter("terrain", height_map=rest_surface)
+    rng = np.random.default_rng(job.seed)
+    frames = simulate.press(design, indenter, depth_mm=depth, rng=rng)
+    calib = render.true_calibration(design)
+    rec = Reconstructor(design, calib)
+    res = [rec.process(f) for f in frames]
+    last = res[-1]
+    if last.skin is None:
+        raise TerrainScanError(f"tap {job.region}#{job.index}: too few markers reconstructed")
+    return np.asarray(last.skin.xyz_mm, dtype=np.float64)
+
+
+def run_tap(job: TapJob) -> str:
+    """Run one tap and write its file (atomically); returns the path. Top-level for spawn pickling."""
+    t0 = time.perf_counter()
+    if job.sensor == "ideal":
+        pts = _ideal_tap(job)
+    elif job.sensor == "twin":
+        pts = _twin_tap(job)
+    else:
+        raise TerrainScanError(f"unknown sensor back end {job.sensor!r} (ideal, twin)")
+    path = Path(job.path)
+    tmp = path.with_name(path.stem + ".partial.npz")
+    np.savez_compressed(tmp, points_sensor_mm=pts, origin_mm=job.origin_mm(), region=job.region,
+                        index=job.index, sensor=job.sensor, wall_s=time.perf_counter() - t0)
+    os.replace(tmp, path)
+    return str(path)
+
+
+def load_tap(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    with np.load(path) as f:
+        return f["points_sensor_mm"], f["origin_mm"]
+
+
+# ----- scoring ------------------------------------------------------------------------------
+
+def _half_height_width(z: np.ndarray, min_peak_mm: float = 0.5) -> float:
+    """Mean over rows (rows whose max exceeds ``min_peak_mm``) of the cell count above half the row max."""
+    widths = []
+    for row in z:
+        if not np.any(np.isfinite(row)):
+            continue
+        m = np.nanmax(row)
+        if m > min_peak_mm:
+            widths.append(np.sum(row > m / 2))
+    return float(np.mean(widths)) if widths else float("nan")
+
+
+def _contrast(z: np.ndarray, land: np.ndarray, sea: np.ndarray) -> float:
+    zl, zs = z[land & np.isfinite(z)], z[sea & np.isfinite(z)]
+    if len(zl) == 0 or len(zs) == 0:
+        return float("nan")
+    return float(np.percentile(zl, 90) - np.median(zs))
+
+
+def score_region(key: str, recon: HeightMap, truth: HeightMap, land: np.ndarray, tap_z_mm: float) -> dict[str, Any]:
+    """Metrics of one region on the common grid (global frame, mm).
+
+    recon, truth : HeightMaps on the same grid; land : (H, W) bool truth land mask on that grid.
+    Errors are over cells where the reconstruction exists (the scanned area inside the box).
+    """
+    from twin.terrain import region
+
+    r = region(key)
+    zr, zt = recon.z_mm, truth.z_mm
+    reach = np.maximum(zt, tap_z_mm)
+    ok = np.isfinite(zr)
+    err, err_reach = zr[ok] - zt[ok], zr[ok] - reach[ok]
+    out: dict[str, Any] = {
+        "name": r.name, "kind": r.kind, "box_deg": [r.lat_min, r.lat_max, r.lon_min, r.lon_max],
+        "box_mm": [round(v, 3) for v in r.box_mm()],
+        "covered_fraction": float(ok.mean()),
+        "rms_err_mm": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
+        "max_abs_err_mm": float(np.max(np.abs(err))) if err.size else float("nan"),
+        "rms_err_reachable_mm": float(np.sqrt(np.mean(err_reach**2))) if err.size else float("nan"),
+        "max_abs_err_reachable_mm": float(np.max(np.abs(err_reach))) if err.size else float("nan"),
+        "true_max_mm": float(np.nanmax(zt)), "recon_max_mm": float(np.nanmax(zr)) if ok.any() else float("nan"),
+    }
+    if r.kind == "mountains":
+        peak_err = out["recon_max_mm"] - out["true_max_mm"]
+        zt_cov = np.where(ok, zt, np.nan)
+        w_true, w_rec = _half_height_width(zt_cov), _half_height_width(zr)
+        ratio = w_rec / w_true if w_true > 0 else float("nan")
+        out.update(peak_err_mm=float(peak_err), half_height_width_ratio=float(ratio),
+                   resolved=bool(abs(peak_err) <= PEAK_TOL_MM and WIDTH_RATIO_RANGE[0] <= ratio <= WIDTH_RATIO_RANGE[1]))
+    else:
+        sea = ~land
+        c_true = _contrast(np.where(ok, reach, np.nan), land, sea)
+        c_rec = _contrast(zr, land, sea)
+        floor_err = float(np.median((zr - zt)[sea & ok])) if np.any(sea & ok) else float("nan")
+        out.update(contrast_reachable_mm=c_true, contrast_recon_mm=c_rec, sea_floor_err_mm=floor_err,
+                   resolved=bool(np.isfinite(c_rec) and c_rec >= CONTRAST_FRACTION * c_true and c_rec >= MIN_CONTRAST_MM))
+    return out
+
+
+# ----- outputs ------------------------------------------------------------------------------
+
+def write_ply(path: Path, points_mm: np.ndarray) -> None:
+    """ASCII PLY point cloud (mm)."""
+    p = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3)
+    with open(path, "w") as fh:
+        fh.write(f"ply\nformat ascii 1.0\ncomment units mm, terrain global frame (z = 0 at sea level)\n"
+                 f"element vertex {len(p)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+        np.savetxt(fh, p, fmt="%.4f")
+
+
+def _panel(path: Path, title: str, truth: HeightMap, recon: HeightMap, centres: np.ndarray | None = None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ext = [truth.x_mm[0], truth.x_mm[-1], truth.y_mm[0], truth.y_mm[-1]]
+    vmin, vmax = float(np.nanmin(truth.z_mm)), max(float(np.nanmax(truth.z_mm)), 0.1)
+    err = recon.z_mm - truth.z_mm
+    emax = max(float(np.nanmax(np.abs(err))) if np.any(np.isfinite(err)) else 0.1, 0.1)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)
+    for ax, z, t, cmap, lim in ((axes[0], truth.z_mm, "DEM truth (global z, mm)", "terrain", (vmin, vmax)),
+                                (axes[1], recon.z_mm, "reconstruction (mm)", "terrain", (vmin, vmax)),
+                                (axes[2], err, "reconstruction - truth (mm)", "RdBu_r", (-emax, emax))):
+        im = ax.imshow(z, origin="lower", extent=ext, cmap=cmap, vmin=lim[0], vmax=lim[1], aspect="equal")
+        ax.set_title(t)
+        ax.set_xlabel("x (mm)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+        if centres is not None and ax is axes[1]:
+            ax.plot(centres[:, 0], centres[:, 1], "k.-", lw=0.6, ms=3)
+    axes[0].set_ylabel("y (mm)")
+    fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _world_panel(path: Path, tmap, results: dict[str, dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    hm = tmap.height_map(frame="global")
+    s = 4
+    fig, axes = plt.subplots(2, 1, figsize=(12, 12.5), constrained_layout=True)
+    vmin, vmax = -2.0, float(np.max(hm.z_mm))
+    ext = [0, 320, 0, 160]
+    axes[0].imshow(hm.z_mm[::s, ::s], origin="lower", extent=ext, cmap="terrain", vmin=vmin, vmax=vmax)
+    axes[0].set_title("DEM truth, global frame (z = 0 mm at sea level); scanned regions boxed")
+    canvas = np.full(hm.z_mm[::s, ::s].shape, np.nan)
+    xs, ys = hm.x_mm[::s], hm.y_mm[::s]
+    for key, res in results.items():
+        rec: HeightMap = res["recon"]
+        from scipy.interpolate import RegularGridInterpolator
+
+        jx = np.flatnonzero((xs >= rec.x_mm[0]) & (xs <= rec.x_mm[-1]))
+        iy = np.flatnonzero((ys >= rec.y_mm[0]) & (ys <= rec.y_mm[-1]))
+        if len(jx) and len(iy):
+            f = RegularGridInterpolator((rec.y_mm, rec.x_mm), rec.z_mm, bounds_error=False)
+            Y, X = np.meshgrid(ys[iy], xs[jx], indexing="ij")
+            v = f(np.column_stack([Y.ravel(), X.ravel()])).reshape(Y.shape)
+            sub = canvas[np.ix_(iy, jx)]
+            canvas[np.ix_(iy, jx)] = np.where(np.isfinite(v), v, sub)
+    axes[1].imshow(np.where(np.isfinite(canvas), np.nan, hm.z_mm[::s, ::s]), origin="lower", extent=ext,
+                   cmap="Greys", alpha=0.35, vmin=vmin, vmax=vmax)
+    im = axes[1].imshow(canvas, origin="lower", extent=ext, cmap="terrain", vmin=vmin, vmax=vmax)
+    axes[1].set_title("tactile reconstruction of the scanned regions")
+    for ax in axes:
+        for key, res in results.items():
+            x0, x1, y0, y1 = res["metrics"]["box_mm"]
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="r", lw=1))
+            ax.text(x0, y1 + 1, key, color="r", fontsize=7)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+    fig.colorbar(im, ax=axes, shrink=0.5, label="z (mm)")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parent, timeout=5).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+# ----- the experiment -----------------------------------------------------------------------
+
+def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", sensor: str = "ideal",
+             quick: bool = False, workers: int | None = None, tap_z_mm: float = 0.0, seed: int = 0,
+             progress: bool = True) -> dict[str, Any]:
+    """Run (or resume) the terrain scan and write every output; returns the ``terrain.json`` dict.
+
+    ``regions``: ``"all"``, a comma-separated string or a list of region keys. ``quick``: the two
+    small regions of :data:`QUICK_REGIONS` (unless regions are given) with at most 4 taps each.
+    ``workers``: processes for the taps (default: all cores); taps already on disk are not rerun.
+    """
+    from twin.terrain import REGIONS, load_terrain_map, region
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    (out / "taps").mkdir(parents=True, exist_ok=True)
+    if isinstance(regions, str):
+        keys = (list(QUICK_REGIONS) if quick else list(REGIONS)) if regions == "all" else \
+            [k.strip() for k in regions.split(",") if k.strip()]
+    else:
+        keys = list(regions)
+    for k in keys:
+        region(k)  # validates the name
+    if sensor not in ("ideal", "twin"):
+        raise TerrainScanError(f"unknown sensor back end {sensor!r} (ideal, twin)")
+    jobs = plan_jobs(keys, out, sensor=sensor, tap_z_mm=tap_z_mm, seed=seed, max_taps=4 if quick else None)
+    todo = [j for js in jobs.values() for j in js if not Path(j.path).is_file()]
+    n_total = sum(len(js) for js in jobs.values())
+    workers = max(1, min(workers or os.cpu_count() or 1, max(1, len(todo))))
+    if todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_total, initial=n_total - len(todo), desc="terrain taps", unit="tap", disable=not progress)
+        if workers == 1:
+            for j in todo:
+                run_tap(j)
+                bar.update()
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
+                futs = [ex.submit(run_tap, j) for j in todo]
+                for f in cf.as_completed(futs):
+                    f.result()
+                    bar.update()
+        bar.close()
+
+    tmap = load_terrain_map()
+    results: dict[str, dict] = {}
+    for key, js in jobs.items():
+        r = region(key)
+        taps = []
+        for j in js:
+            pts, origin = load_tap(j.path)
+            taps.append(tap_points_to_global(pts, origin))
+        merged = merge_taps(taps, threshold_mm=OVERLAP_THRESHOLD_MM, eps_mm=MOLLIFIER_EPS_MM)
+        x0, x1, y0, y1 = r.box_mm()
+        xs = np.arange(x0, x1 + 1e-9, GRID_STEP_MM)
+        ys = np.arange(y0, y1 + 1e-9, GRID_STEP_MM)
+        recon = grid_points(merged.points_mm, xs, ys, max_gap_mm=MAX_GAP_MM)
+        X, Y = np.meshgrid(xs, ys)
+        truth = HeightMap(xs, ys, tmap.sample_z_mm(X, Y, frame="global"))
+        from twin.terrain import lat_from_y_mm, lon_from_x_mm
+
+        li = np.clip(np.searchsorted(tmap.lat_deg, lat_from_y_mm(Y)), 0, len(tmap.lat_deg) - 1)
+        lj = np.clip(np.searchsorted(tmap.lon_deg, lon_from_x_mm(X)), 0, len(tmap.lon_deg) - 1)
+        land = tmap.land[li, lj]
+        metrics = score_region(key, recon, truth, land, tap_z_mm)
+        metrics.update(n_taps=len(js), n_points_raw=int(len(merged.selection.points_mm)),
+                       n_points_merged=int(len(merged.points_mm)),
+                       n_overlap_points=int(merged.selection.overlap.sum()))
+        recon.save_npz(out / f"{key}_height.npz")
+        write_ply(out / f"{key}_points.ply", merged.points_mm)
+        centres = np.array([j.centre_mm for j in js])
+        _panel(out / f"{key}.png", f"{r.name}: {len(js)} taps, RMS {metrics['rms_err_mm']:.2f} mm "
+               f"(reachable {metrics['rms_err_reachable_mm']:.2f} mm), resolved: {metrics['resolved']}",
+               truth, recon, centres)
+        results[key] = {"metrics": metrics, "recon": recon}
+    _world_panel(out / "world.png", tmap, results)
+
+    design = _design()
+    record = {
+        "experiment": "terrain", "sensor": sensor, "design": design.name, "seed": seed, "commit": _commit(),
+        "quick": quick, "units": {"length": "mm", "frame": "global: x east from 180E, y north from 90S, z up, 0 at sea level"},
+        "tap_plane_z_mm": tap_z_mm, "approach_z_mm": 8.0, "step_mm": 15.0,
+        "overlap_threshold_mm": OVERLAP_THRESHOLD_MM, "mollifier_eps_mm": MOLLIFIER_EPS_MM,
+        "terrain_source": tmap.source, "criteria": FEATURE_CRITERIA,
+        "n_taps": n_total, "n_taps_run_now": len(todo), "workers": workers,
+        "wall_time_s": time.perf_counter() - t_start,
+        "regions": {k: v["metrics"] for k, v in results.items()},
+    }
+    (out / "terrain.json").write_text(json.dumps(record, indent=2, default=float))
+    return record

@@ -1,0 +1,93 @@
+"""The terrain scan end to end with the 'ideal' tap back end (conforming skin at the marker x-y):
+frames and signs of the tap -> global chain, resumability, outputs, scoring."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from benchmarks import terrain as B
+from twin import terrain as T
+
+# the ideal tap samples the same bilinear relief: sensor frame -> global is exact up to rounding
+CHAIN_TOL_MM = 1e-9
+
+
+def test_ideal_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
+    from pipeline.merge import tap_points_to_global
+
+    tmap = T.load_terrain_map()
+    cx, cy = T.x_mm_from_lon(86.0), T.y_mm_from_lat(29.0)      # southern Tibet, all above sea level
+    job = B.TapJob("himalaya", 0, (cx, cy), 0.0, "ideal", 0, str(tmp_path / "t.npz"))
+    pts_s = B._ideal_tap(job)
+    assert np.all(pts_s[:, 2] <= 0)                             # the skin is pushed into the sensor
+    g = tap_points_to_global(pts_s, job.origin_mm())
+    expect = np.maximum(tmap.sample_z_mm(g[:, 0], g[:, 1], frame="global"), 0.0)
+    np.testing.assert_allclose(g[:, 2], expect, atol=CHAIN_TOL_MM)
+    # mirror check: the tap's points straddle the centre symmetrically in x and y
+    assert abs(g[:, 0].mean() - cx) < 1e-9 and abs(g[:, 1].mean() - cy) < 1e-9
+    # a tap over the open ocean leaves the skin at rest (z = tap plane)
+    job2 = B.TapJob("okhotsk", 0, (T.x_mm_from_lon(-150.0), T.y_mm_from_lat(0.0)), 0.0, "ideal", 0, "")
+    np.testing.assert_allclose(B._ideal_tap(job2)[:, 2], 0.0)
+
+
+def test_quick_scan_outputs_scores_and_resumes(tmp_path):
+    out = tmp_path / "scan"
+    rec = B.run_scan(out, regions="drake,himalaya", quick=True, workers=1, progress=False)
+    assert set(rec["regions"]) == {"drake", "himalaya"}
+    taps = sorted((out / "taps").glob("*.npz"))
+    assert len(taps) == rec["n_taps"] == rec["n_taps_run_now"] == 4 + 2
+    for key in ("drake", "himalaya"):
+        for suffix in ("_height.npz", "_points.ply", ".png"):
+            assert (out / f"{key}{suffix}").stat().st_size > 0
+    assert (out / "world.png").is_file()
+    on_disk = json.loads((out / "terrain.json").read_text())
+    assert on_disk["regions"]["drake"]["n_taps"] == 4
+
+    him = rec["regions"]["himalaya"]
+    # an ideal skin pressed to sea level over all-land relief: the error is only marker sampling
+    # (1.8 mm spacing, linear interpolation) of a 20' DEM; peaks within the mountains' criterion
+    assert him["covered_fraction"] > 0.9
+    assert him["rms_err_mm"] == pytest.approx(him["rms_err_reachable_mm"], abs=0.05)
+    assert him["rms_err_mm"] < 0.4
+    assert abs(him["peak_err_mm"]) <= B.PEAK_TOL_MM
+    drake = rec["regions"]["drake"]
+    # the paper's taps stop at sea level: the flattened sea floor (-2 mm) is never touched, so the
+    # reconstructed sea sits exactly 2 mm too high while the reachable error stays small
+    assert drake["sea_floor_err_mm"] == pytest.approx(2.0, abs=0.05)
+    assert drake["rms_err_reachable_mm"] < 0.3
+    assert drake["n_points_merged"] < drake["n_points_raw"]      # the overlap merge removed points
+
+    # resume: drop one finished tap, rerun: only that tap runs, and the numbers are unchanged
+    taps[0].unlink()
+    rec2 = B.run_scan(out, regions="drake,himalaya", quick=True, workers=1, progress=False)
+    assert rec2["n_taps_run_now"] == 1
+    for key in rec["regions"]:
+        assert rec2["regions"][key]["rms_err_mm"] == pytest.approx(rec["regions"][key]["rms_err_mm"], abs=1e-12)
+
+
+def test_parallel_taps_match_serial(tmp_path):
+    a = B.run_scan(tmp_path / "a", regions="english_channel,gulf_of_mexico", workers=1, progress=False)
+    b = B.run_scan(tmp_path / "b", regions="english_channel,gulf_of_mexico", workers=2, progress=False)
+    assert b["workers"] == 2
+    for key in a["regions"]:
+        assert b["regions"][key]["rms_err_mm"] == pytest.approx(a["regions"][key]["rms_err_mm"], abs=1e-12)
+
+
+def test_bad_options_are_user_errors(tmp_path):
+    from pipeline.errors import UserError
+
+    with pytest.raises(UserError, match="atlantis"):
+        B.run_scan(tmp_path, regions="atlantis", progress=False)
+    with pytest.raises(UserError, match="sensor"):
+        B.run_scan(tmp_path, regions="drake", sensor="lidar", progress=False)
+
+
+def test_cli_entry(tmp_path, capsys):
+    from benchmarks.cli_terrain import main
+
+    assert main(["terrain", "--regions", "english_channel", "--out", str(tmp_path), "--workers", "1"]) == 0
+    assert "english_channel" in capsys.readouterr().out
+    assert main(["terrain", "--regions", "nowhere", "--out", str(tmp_path)]) == 2
