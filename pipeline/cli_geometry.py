@@ -140,11 +140,15 @@ def _calibrate_refraction(args: argparse.Namespace) -> int:
         for step, cloud in zip(steps, clouds):
             common, i_ref, i_cur = np.intersect1d(ref.ids, cloud.ids, return_indices=True)
             if len(common) == 0:
-                raise CliInputError(f"{args.sequence}: trial {trial + 1}, step {step} mm shares no markers "
-                                    f"with the first step")
+                print(f"trial {trial + 1}, step {step:g} mm: no markers in common with the first step (skipped)")
+                continue
             true_dz.append(np.full(len(common), step - steps[0]))
             # the press moves the board toward the cameras (-z): apparent displacement z'_0 - z'
             app_dz.append(ref.xyz_mm[i_ref, 2] - cloud.xyz_mm[i_cur, 2])
+    used_steps = {float(t[0]) for t in true_dz if len(t)}
+    if len(used_steps) < 2:
+        raise CliInputError(f"{args.sequence}: markers were reconstructed at fewer than 2 distinct steps; "
+                            f"cannot fit a refractive index")
     fit = fit_refractive_index(np.concatenate(true_dz), np.concatenate(app_dz))
     print(f"{n_trials} trial(s) x {len(steps)} steps: {fit.summary()}")
     return 0

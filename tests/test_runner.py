@@ -1,0 +1,196 @@
+"""End-to-end on analytic frames: synthetic stereo frame -> detect -> DTRC -> triangulate -> refraction."""
+
+import argparse
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline import cli_geometry
+from pipeline.design import load_design
+from pipeline.latency import run_latency
+from pipeline.refraction import project_through_stack
+from pipeline.runner import Reconstructor, RunnerError, reconstruct
+from pipeline.types import DataError, StereoFrame
+from synth_frames import chessboard_pairs, gaussian_press_markers, nominal_calibration, synth_stereo_frame
+
+# Detected centres on the synthetic discs are within ~0.07 px of the projection (measured: median 0.03,
+# p95 0.06 px). Depth sensitivity at the ~25 mm apparent range is z^2 / (b f) ~ 0.11 mm per px of
+# disparity, scaled by ~1.4 through the gel: 0.1 px of disparity error -> ~0.016 mm; 0.05 mm leaves 3x.
+E2E_TOL_MM = 0.05
+DESIGNS = ["hexagon127", "square121", "circular217_dome"]
+
+
+def _visible(design, calib, xyz, margin_px=4.0):
+    """Markers whose discs lie wholly inside both images (others may legitimately be lost)."""
+    left, right = project_through_stack(xyz, calib, design)
+    w, h = calib.image_size
+    ok = np.ones(len(xyz), bool)
+    for px in (left, right):
+        ok &= (px[:, 0] > margin_px) & (px[:, 0] < w - 1 - margin_px) & (px[:, 1] > margin_px) & (px[:, 1] < h - 1 - margin_px)
+    return ok
+
+
+def _check(result, truth, visible):
+    ids = result.corrected.ids
+    err = np.linalg.norm(result.corrected.xyz_mm - truth[ids], axis=1)
+    assert err.max() < E2E_TOL_MM, f"max 3-D error {err.max():.4f} mm (id {ids[np.argmax(err)]})"
+    missing = np.setdiff1d(np.flatnonzero(visible), ids)
+    assert len(missing) == 0, f"visible markers not matched: {missing.tolist()}"
+    assert set(result.unmatched_ids.tolist()) == set(range(len(truth))) - set(ids.tolist())
+    return err
+
+
+@pytest.mark.parametrize("design_name", [
+    "hexagon127", "square121",
+    pytest.param("circular217_dome", marks=pytest.mark.xfail(
+        strict=True, reason="with the nominal cameras 6 outer-ring markers of the 217 dome fall outside the "
+                            "left image (ids 12, 13, 34-37) and DTRC then codes no ring at all")),
+])
+def test_end_to_end_undeformed_and_pressed(design_name):
+    design = load_design(design_name)
+    calib = nominal_calibration(design)
+    rng = np.random.default_rng(7)
+    rec = Reconstructor(design, calib)
+    for depth in (0.0, 2.5):
+        truth = gaussian_press_markers(design, depth, sigma_mm=4.0, lateral=0.3)
+        frame = synth_stereo_frame(design, calib, truth, rng=rng)
+        res = rec.process(frame)
+        err = _check(res, truth, _visible(design, calib, truth))
+        print(f"{design_name} press {depth} mm: {res.n_matched}/{res.n_expected} matched, 3-D error median "
+              f"{np.median(err):.4f} max {err.max():.4f} mm, {res.timings_ms['total']:.1f} ms")
+        assert res.skin is not None and len(res.skin) == res.n_matched
+        assert set(res.timings_ms) >= {"detect", "match", "triangulate", "refraction", "surface", "total"}
+
+
+def test_linear_refraction_relative_to_first_frame():
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    rec = Reconstructor(design, calib, refraction="linear")
+    rest = design.rest_markers_mm()
+    r0 = rec.process(synth_stereo_frame(design, calib, rest))
+    assert np.max(np.abs(r0.corrected.xyz_mm[:, 2] - rest[r0.corrected.ids, 2])) < 1e-9  # anchored at rest
+    truth = gaussian_press_markers(design, 2.0, sigma_mm=4.0)
+    res = rec.process(synth_stereo_frame(design, calib, truth))
+    central = np.hypot(*rest[res.corrected.ids, :2].T) < 3.0
+    dz_err = np.abs(res.corrected.xyz_mm[:, 2] - truth[res.corrected.ids, 2])
+    # near the axis the model's own error is ~1-2 % of the 2 mm press (test_refraction) plus detection noise
+    assert dz_err[central].max() < 0.04 + E2E_TOL_MM
+
+
+def test_half_occluded_frame_gives_partial_result():
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    truth = design.rest_markers_mm()
+    shown = truth[:, 0] >= -0.1  # the x < 0 half of the pattern is hidden (e.g. covered)
+    frame = synth_stereo_frame(design, calib, truth[shown])
+    res = Reconstructor(design, calib).process(frame)
+    hidden = np.flatnonzero(~shown)
+    assert set(hidden.tolist()) <= set(res.unmatched_ids.tolist())
+    if len(res.corrected):
+        err = np.linalg.norm(res.corrected.xyz_mm - truth[res.corrected.ids], axis=1)
+        assert err.max() < E2E_TOL_MM  # whatever is matched is matched correctly
+    assert "unmatched ids" in res.summary(design)
+
+
+@pytest.mark.parametrize("value", [0, 255])
+def test_black_and_saturated_frames_give_empty_results(value):
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    frame = StereoFrame(np.full((480, 1280), value, np.uint8))
+    res = Reconstructor(design, calib).process(frame)
+    assert res.n_matched == 0 and res.skin is None
+    assert res.unmatched_ids.tolist() == list(range(design.marker_count))
+    assert "no markers detected" in res.summary(design)
+
+
+def test_truncated_frames_and_bad_options_are_rejected():
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    with pytest.raises(DataError, match="1280x480"):
+        StereoFrame(np.zeros((240, 1280), np.uint8))
+    with pytest.raises(RunnerError, match="refraction"):
+        Reconstructor(design, calib, refraction="magic")
+    with pytest.raises(RunnerError, match="tracker"):
+        Reconstructor(design, calib, tracker="psychic")
+
+
+def _run_cli(argv):
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="command", required=True)
+    cli_geometry.register(sub)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def test_cli_reconstruct_writes_outputs(tmp_path, capsys):
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    calib.save_yaml(tmp_path / "calib.yaml")
+    src = tmp_path / "frames"
+    src.mkdir()
+    rng = np.random.default_rng(9)
+    for k, depth in enumerate((0.0, 1.0, 2.0)):
+        f = synth_stereo_frame(design, calib, gaussian_press_markers(design, depth), rng=rng)
+        cv2.imwrite(str(src / f"frame_{k:04d}.png"), f.image)
+    out = tmp_path / "out"
+    assert _run_cli(["reconstruct", str(src), "--calib", str(tmp_path / "calib.yaml"), "--design", "hexagon127",
+                     "--out", str(out), "--max-frames", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert sum("127/127 markers" in line for line in lines) == 3
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 3 and summary["per_frame"][2]["max_abs_dz_mm"] == pytest.approx(2.0, abs=0.05)
+    for name in ("markers_0002.csv", "markers_0002.ply", "skin_0002.ply", "heightmap_0002.npz",
+                 "surface_0002.stl", "surface_0002.ply", "preview_0002.png"):
+        assert (out / name).stat().st_size > 0, name
+
+
+def test_cli_calibrate_from_concatenated_pairs(tmp_path, capsys):
+    truth = nominal_calibration(load_design("hexagon127"))
+    folder = tmp_path / "boards"
+    folder.mkdir()
+    for name, left, right in chessboard_pairs(truth, 4, np.random.default_rng(21)):
+        cv2.imwrite(str(folder / f"{name}.png"), np.hstack([left, right]))
+    cv2.imwrite(str(folder / "zz_blank.png"), np.full((480, 1280), 100, np.uint8))
+    assert _run_cli(["calibrate", str(folder), "--board", "9x7", "--square-mm", "4",
+                     "--out", str(tmp_path / "c.yaml")]) == 0
+    text = capsys.readouterr().out
+    assert "baseline 12.5" in text and "skipped" in text and "zz_blank.png" in text
+    from pipeline.types import StereoCalibration
+    calib = StereoCalibration.load_yaml(tmp_path / "c.yaml")
+    assert np.allclose(calib.sensor_from_left, truth.sensor_from_left)
+    from pipeline.calibration import CalibrationError
+    with pytest.raises(CalibrationError, match="need at least 3"):
+        _run_cli(["calibrate", str(folder / "zz_blank.png"), "--out", str(tmp_path / "d.yaml")])
+
+
+def test_cli_calibrate_refraction_on_skinless_press(tmp_path, capsys):
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    calib.save_yaml(tmp_path / "calib.yaml")
+    seq = tmp_path / "press"
+    seq.mkdir()
+    rest = design.rest_markers_mm()
+    # a rigid marker board pushed toward the cameras; beyond ~2 mm its outer ring leaves the 640x480 view
+    steps = [0.0, 0.4, 0.8, 1.2, 1.6]
+    rng = np.random.default_rng(8)
+    for k, s in enumerate(steps):
+        f = synth_stereo_frame(design, calib, rest - [0.0, 0.0, s], rng=rng)
+        cv2.imwrite(str(seq / f"frame_{k:02d}.png"), f.image)
+    assert _run_cli(["calibrate-refraction", str(seq), "--calib", str(tmp_path / "calib.yaml"),
+                     "--design", "hexagon127", "--steps-mm", ",".join(map(str, steps))]) == 0
+    text = capsys.readouterr().out
+    n = float(text.split("n = ")[1].split()[0])
+    # all 127 markers, up to ~30 deg off-axis: the fitted ratio exceeds n_gel by the error term E (~5 %)
+    assert design.optics.gel_n < n < design.optics.gel_n * 1.12
+    assert "R^2 = 0.99" in text
+
+
+def test_latency_benchmark_writes_json(tmp_path):
+    res = run_latency(("hexagon127",), n_frames=5, out_dir=tmp_path, n_distinct_frames=3, progress=False)
+    stored = json.loads((tmp_path / "latency.json").read_text())
+    stages = stored["designs"]["hexagon127"]["stages"]
+    assert set(stages) >= {"detect", "match", "triangulate", "refraction", "surface", "total"}
+    assert stored["designs"]["hexagon127"]["matched_min"] == 127
+    assert res["paper_ms"] == 283.0 and stages["total"]["p95_ms"] >= stages["total"]["median_ms"] > 0
