@@ -40,7 +40,7 @@ from pipeline.design import SensorDesign
 from pipeline.types import Blobs, MarkerMatches
 
 __all__ = ["RingCoding", "code_rings", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
-           "mesh_edges", "OUTLIER_NN_FACTOR", "SLIVER_RADIUS_FACTOR", "LONG_EDGE_FACTOR", "PREDICT_GATE"]
+           "mesh_edges", "peel_rings", "OUTLIER_NN_FACTOR", "SLIVER_RADIUS_FACTOR", "LONG_EDGE_FACTOR", "PREDICT_GATE"]
 
 #: Points whose nearest neighbour is farther than this x the median NN distance are spurious
 #: (lattice points have NN = 1 pitch; 2.0 keeps a marker next to one missing neighbour).
@@ -228,6 +228,22 @@ def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float):
     return rings, carved
 
 
+def peel_rings(blobs: Blobs, n_rings: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """Design-free DTRC meshing + ring peeling (steps 1-2 repeated ``n_rings`` times).
+
+    Returns (rings: list of blob-index arrays, outermost first, each CCW in atan2(v, u);
+    mesh edges (E, 2); mask (N,) of blobs kept for meshing, i.e. not isolated outliers).
+    """
+    pts = np.asarray(blobs.xy_px, dtype=np.float64)
+    if len(pts) < 4:
+        return [], np.empty((0, 2), np.int64), np.ones(len(pts), bool)
+    nn, _ = cKDTree(pts).query(pts, k=2)
+    med = float(np.median(nn[:, 1]))
+    active = nn[:, 1] <= OUTLIER_NN_FACTOR * med
+    rings, carved = _peel(pts, active, n_rings, med)
+    return rings, mesh_edges(carved, len(pts)), active
+
+
 # ----- coding -------------------------------------------------------------------------------
 
 def _gaps_regular(found: np.ndarray, design_xy: np.ndarray) -> bool:
@@ -256,33 +272,56 @@ def _shift_code(phi: np.ndarray, psi: np.ndarray, theta: float) -> tuple[int, fl
     return s, theta + float(m[s]), float(np.max(np.abs(dev[s])))
 
 
-def _predict_code(pts: np.ndarray, free: np.ndarray, slot_ids: np.ndarray, design_xy: np.ndarray,
-                  coded_ids: np.ndarray, coded_px: np.ndarray, pitch_mm: float) -> dict[int, int]:
-    """Code slots by local-affine prediction from coded neighbours; returns {slot id: blob index}."""
-    if len(coded_ids) < 3 or not free.any():
-        return {}
-    tree = cKDTree(design_xy[coded_ids])
-    k = min(8, len(coded_ids))
-    preds, scales = [], []
-    for sid in slot_ids:
-        _, nb = tree.query(design_xy[sid], k=k)
-        X = np.column_stack([design_xy[coded_ids[nb]], np.ones(k)])
-        A, *_ = np.linalg.lstsq(X, coded_px[nb], rcond=None)
-        preds.append(np.append(design_xy[sid], 1.0) @ A)
-        scales.append(math.sqrt(abs(np.linalg.det(A[:2]))) * pitch_mm)
-    preds, scales = np.asarray(preds), np.asarray(scales)
-    cand = np.nonzero(free)[0]
-    ctree = cKDTree(pts[cand])
-    d, j = ctree.query(preds)
-    out: dict[int, int] = {}
-    back = cKDTree(preds)
-    for si, (dist, jj) in enumerate(zip(d, j)):
-        if dist > PREDICT_GATE * scales[si]:
-            continue
-        _, si_back = back.query(pts[cand[jj]])
-        if si_back == si:
-            out[int(slot_ids[si])] = int(cand[jj])
-    return out
+def _affine_predict(query_xy: np.ndarray, ref_xy: np.ndarray, ref_px: np.ndarray, *, k: int = 8,
+                    exclude_self: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Predict image positions of design points from local affine fits to coded neighbours.
+
+    Batched least squares over the ``k`` nearest coded design neighbours of each query point.
+    Returns (predicted px (Q, 2), local pixels per design mm (Q,)).
+    """
+    kk = min(k + int(exclude_self), len(ref_xy))
+    _, nb = cKDTree(ref_xy).query(query_xy, k=kk)
+    nb = nb.reshape(len(query_xy), -1)
+    if exclude_self:
+        nb = nb[:, 1:]
+    X = np.concatenate([ref_xy[nb], np.ones(nb.shape + (1,))], axis=2)  # (Q, k, 3)
+    Y = ref_px[nb]  # (Q, k, 2)
+    XtX = np.einsum("qki,qkj->qij", X, X) + 1e-9 * np.eye(3)
+    XtY = np.einsum("qki,qkj->qij", X, Y)
+    A = np.linalg.solve(XtX, XtY)  # (Q, 3, 2)
+    pred = np.einsum("qi,qij->qj", np.column_stack([query_xy, np.ones(len(query_xy))]), A)
+    scale = np.sqrt(np.abs(np.linalg.det(A[:, :2, :2])))
+    return pred, scale
+
+
+def _verify_and_grow(pts: np.ndarray, ids: np.ndarray, active: np.ndarray, xy_d: np.ndarray,
+                     pitch_mm: float, max_rounds: int) -> int:
+    """Uncode ids that disagree with their coded neighbours, then code free slots by prediction.
+
+    Modifies ``ids`` in place; returns the number of ids removed by verification.
+    """
+    gate = PREDICT_GATE * pitch_mm
+    removed = 0
+    coded = np.nonzero(ids >= 0)[0]
+    if len(coded) >= 4:
+        pred, sc = _affine_predict(xy_d[ids[coded]], xy_d[ids[coded]], pts[coded], exclude_self=True)
+        bad = np.linalg.norm(pred - pts[coded], axis=1) > gate * sc
+        ids[coded[bad]] = -1
+        removed = int(bad.sum())
+    for _ in range(max_rounds):
+        coded = np.nonzero(ids >= 0)[0]
+        free_slots = np.setdiff1d(np.arange(len(xy_d)), ids[coded])
+        cand = np.nonzero(active & (ids < 0))[0]
+        if len(coded) < 4 or len(free_slots) == 0 or len(cand) == 0:
+            break
+        pred, sc = _affine_predict(xy_d[free_slots], xy_d[ids[coded]], pts[coded])
+        d, j = cKDTree(pts[cand]).query(pred)
+        back = cKDTree(pred).query(pts[cand[j]])[1]
+        ok = (d <= gate * sc) & (back == np.arange(len(free_slots)))
+        if not ok.any():
+            break
+        ids[cand[j[ok]]] = free_slots[ok]
+    return removed
 
 
 def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
@@ -335,15 +374,11 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
 
     # code from the centre outward: peel r <-> layer n_layers - 1 - r
     theta = 0.0
-    coded_ids: list[int] = []
-    coded_px: list[np.ndarray] = []
-    assigned = np.zeros(n, bool)
-    pitch = design.pattern.separation_mm
+    failed = bool(leftover.any() or (~active).any())
     for layer in range(n_layers):
         d_ids, d_xy, d_ang = drings[layer]
         r = n_layers - 1 - layer
         members = rings[r] if r < len(rings) else np.empty(0, np.intp)
-        members = members[~assigned[members]]
         done = False
         if len(members) == len(d_ids):
             if layer == 0:
@@ -356,24 +391,22 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
                 o = np.argsort(phi, kind="stable")
                 members, phi = members[o], phi[o]
                 if _gaps_regular(pts[members], d_xy):
-                    shift, theta_new, spread = _shift_code(phi, d_ang, theta if layer > 1 else 0.0)
-                    half_pitch = math.pi / len(d_ids)
-                    if spread < half_pitch:
+                    shift, theta_new, spread = _shift_code(phi, d_ang, theta)
+                    if spread < math.pi / len(d_ids):
                         ids[np.roll(members, -shift)] = d_ids
                         theta = theta_new
                         done = True
         if not done:
-            free = ~assigned & active & (ids < 0)
-            got = _predict_code(pts, free, d_ids, xy_d, np.asarray(coded_ids, np.int64),
-                                np.asarray(coded_px).reshape(-1, 2), pitch)
-            for sid, bi in got.items():
-                ids[bi] = sid
-            msgs.append(f"ring {r} (layer {layer}): found {len(members)} blobs, expected {len(d_ids)}; "
-                        f"coded {len(got)} by prediction")
-        newly = np.nonzero((ids >= 0) & ~assigned)[0]
-        assigned[newly] = True
-        coded_ids.extend(ids[newly].tolist())
-        coded_px.extend(pts[newly])
+            failed = True
+            msgs.append(f"ring {r} (layer {layer}): found {len(members)} blobs, expected {len(d_ids)}"
+                        + ("" if len(members) != len(d_ids) else " (irregular)"))
+    if failed:
+        # a defect anywhere may shift markers between peels: check every code against its coded
+        # neighbours and fill the free slots by prediction (never by guessing)
+        before = int((ids >= 0).sum())
+        removed = _verify_and_grow(pts, ids, active, xy_d, design.pattern.separation_mm, n_layers + 2)
+        msgs.append(f"verification removed {removed} code(s); prediction coded "
+                    f"{int((ids >= 0).sum()) - before + removed} more")
     all_ids = np.arange(len(xy_d), dtype=np.int64)
     unmatched = np.setdiff1d(all_ids, ids[ids >= 0])
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs))
