@@ -1,0 +1,115 @@
+"""``stereotactip detect`` and ``stereotactip record`` (wired in by ``pipeline.cli`` via ``register``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.errors import SourceError, UserError
+
+__all__ = ["register", "detect_image"]
+
+
+def detect_image(path: Path, design, *, out_dir: Path | None = None) -> dict:
+    """Detection + ring coding on one image file (640-wide view or 1280x480 stereo frame).
+
+    Writes ``<stem>_detect.png`` into ``out_dir`` (default: next to the image) and returns a JSON-able
+    report: per view the marker count, ring sizes found vs expected, uncoded/unmatched counts.
+    """
+    from pipeline.annotate import annotate_view
+    from pipeline.detection import detect_markers
+    from pipeline.dtrc import code_rings
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SourceError(f"{path}: not a readable image")
+    if img.dtype != np.uint8:
+        raise SourceError(f"{path}: expected 8-bit pixels, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    h, w = img.shape[:2]
+    views = {"left": img[:, : w // 2], "right": img[:, w // 2:]} if (w, h) == (1280, 480) else {"view": img}
+    report = {"image": str(path), "width_px": w, "height_px": h, "design": design.name, "views": {}}
+    panels = []
+    for name, view in views.items():
+        blobs = detect_markers(view)
+        coding = code_rings(blobs, design)
+        report["views"][name] = {
+            "markers_found": len(blobs),
+            "ring_sizes_found": list(coding.ring_sizes_found),
+            "ring_sizes_expected": list(coding.ring_sizes_expected),
+            "rings_match_design": coding.ring_sizes_found == coding.ring_sizes_expected,
+            "coded": coding.coded,
+            "unmatched_ids": coding.unmatched_ids.tolist(),
+            "messages": list(coding.messages),
+        }
+        panels.append(annotate_view(view, blobs, coding))
+    out_dir = Path(out_dir) if out_dir is not None else path.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out_png = out_dir / f"{path.stem}_detect.png"
+    if not cv2.imwrite(str(out_png), np.concatenate(panels, axis=1)):
+        raise SourceError(f"{out_png}: cannot write")
+    report["annotated_png"] = str(out_png)
+    return report
+
+
+def _detect(args: argparse.Namespace) -> int:
+    from pipeline.design import load_design
+
+    design = load_design(args.design)
+    reports = []
+    for p in args.images:
+        path = Path(p)
+        if not path.is_file():
+            raise SourceError(f"{path}: no such image file")
+        reports.append(detect_image(path, design, out_dir=args.out))
+    if args.json:
+        json.dump(reports if len(reports) > 1 else reports[0], sys.stdout, indent=2)
+        print()
+        return 0
+    for r in reports:
+        print(f"{r['image']} ({r['width_px']}x{r['height_px']}), design {r['design']}:")
+        for name, v in r["views"].items():
+            ok = "matches design" if v["rings_match_design"] else "DIFFERS from design"
+            print(f"  {name:5s}: {v['markers_found']} markers, {v['coded']} coded, "
+                  f"{len(v['unmatched_ids'])} design ids unmatched")
+            print(f"         rings found    {v['ring_sizes_found']}")
+            print(f"         rings expected {v['ring_sizes_expected']}  ({ok})")
+            for m in v["messages"]:
+                print(f"         note: {m}")
+        print(f"  annotated: {r['annotated_png']}")
+    return 0
+
+
+def _record(args: argparse.Namespace) -> int:
+    from pipeline.sources import open_source, record
+
+    if args.max_frames is not None and args.max_frames < 0:
+        raise UserError(f"--max-frames must be >= 0, got {args.max_frames}")
+    with open_source(args.source) as src:
+        n = record(src, args.out, max_frames=args.max_frames, progress=not args.quiet, overwrite=args.overwrite)
+    print(f"recorded {n} frame(s) from {args.source} into {args.out}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``detect`` and ``record`` subcommands."""
+    p = sub.add_parser("detect", help="detect markers and DTRC rings in images; write annotated PNGs")
+    p.add_argument("images", nargs="+", metavar="IMAGE", help="640-wide view or 1280x480 stereo frame")
+    p.add_argument("--design", default="hexagon127", help="design name or TOML path (default hexagon127)")
+    p.add_argument("--json", action="store_true", help="print a JSON report")
+    p.add_argument("--out", type=Path, default=None, help="folder for <stem>_detect.png (default: beside the image)")
+    p.set_defaults(func=_detect)
+
+    p = sub.add_parser("record", help="record frames losslessly (PNG + timestamps.csv)")
+    p.add_argument("source", metavar="SOURCE", help="camera index, video file, image folder or image")
+    p.add_argument("--out", required=True, type=Path, help="output folder")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing recording in --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_record)

@@ -1,0 +1,270 @@
+"""Stage 1: frame sources (live camera, video file, image folder, single image) and recording.
+
+Every source yields :class:`pipeline.types.StereoFrame` (1280x480 concatenated left | right, uint8
+grey or BGR). A frame of the wrong size, channel count or dtype, or an unreadable file, raises
+:class:`pipeline.errors.SourceError` naming the source and the file or frame index.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import time
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from pipeline.errors import SourceError
+from pipeline.types import FRAME_HEIGHT_PX, FRAME_WIDTH_PX, DataError, StereoFrame
+
+__all__ = ["FrameSource", "open_source", "record", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES"]
+
+IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg", ".pgm", ".ppm")
+VIDEO_SUFFIXES = (".avi", ".mp4", ".mkv", ".mov", ".m4v", ".mjpg", ".mjpeg", ".webm")
+
+
+def _check_frame(img: np.ndarray | None, where: str) -> np.ndarray:
+    """Validate one decoded frame; returns it grey (H, W) or BGR (H, W, 3) uint8."""
+    if img is None:
+        raise SourceError(f"{where}: unreadable (not an image, or decoding failed)")
+    if img.dtype != np.uint8:
+        raise SourceError(f"{where}: expected 8-bit pixels, got {img.dtype}")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] == 4:
+        raise SourceError(f"{where}: has 4 channels (alpha); expected grey or BGR")
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
+        raise SourceError(f"{where}: expected a grey or 3-channel image, got shape {img.shape}")
+    if img.shape[:2] != (FRAME_HEIGHT_PX, FRAME_WIDTH_PX):
+        raise SourceError(f"{where}: expected a {FRAME_WIDTH_PX}x{FRAME_HEIGHT_PX} stereo frame (left|right), "
+                          f"got {img.shape[1]}x{img.shape[0]}")
+    return img
+
+
+def _frame(img: np.ndarray, t: float, index: int, name: str, where: str) -> StereoFrame:
+    try:
+        return StereoFrame(_check_frame(img, where), timestamp_s=float(t), index=int(index), source=name)
+    except DataError as exc:  # pragma: no cover - _check_frame catches these first
+        raise SourceError(f"{where}: {exc}") from None
+
+
+class FrameSource:
+    """Iterable of :class:`StereoFrame` with ``close()`` and context-manager support.
+
+    Build with :func:`open_source`. ``name`` is used in error messages; ``kind`` is one of
+    ``camera``, ``video``, ``folder``, ``image``.
+    """
+
+    def __init__(self, name: str, kind: str, *, loop: bool = False) -> None:
+        self.name = name
+        self.kind = kind
+        self.loop = loop
+        self._closed = False
+
+    def _frames(self) -> Iterator[StereoFrame]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[StereoFrame]:
+        if self._closed:
+            raise SourceError(f"{self.name}: source is closed")
+        return self._frames()
+
+    def close(self) -> None:
+        self._closed = True
+
+    def __enter__(self) -> "FrameSource":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<FrameSource {self.kind} {self.name!r}>"
+
+
+class _FileSource(FrameSource):
+    """A sorted list of image files; timestamps are the file order (index) unless given."""
+
+    def __init__(self, name: str, kind: str, files: list[Path], timestamps: dict[str, float] | None = None,
+                 *, loop: bool = False) -> None:
+        super().__init__(name, kind, loop=loop)
+        self.files = files
+        self.timestamps = timestamps or {}
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def _frames(self) -> Iterator[StereoFrame]:
+        index = 0
+        while True:
+            for f in self.files:
+                if self._closed:
+                    return
+                img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+                where = f"{self.name}: file {f.name} (frame {index})"
+                if img is None and not f.is_file():
+                    raise SourceError(f"{where}: does not exist")
+                t = self.timestamps.get(f.name, float(index))
+                yield _frame(img, t, index, self.name, where)
+                index += 1
+            if not self.loop or not self.files:
+                return
+
+
+class _CaptureSource(FrameSource):
+    """cv2.VideoCapture on a camera index or a video file."""
+
+    def __init__(self, name: str, kind: str, cap: "cv2.VideoCapture", *, loop: bool = False) -> None:
+        super().__init__(name, kind, loop=loop)
+        self.cap = cap
+        self._t0: float | None = None
+
+    def _frames(self) -> Iterator[StereoFrame]:
+        index = 0
+        while not self._closed:
+            ok, img = self.cap.read()
+            if not ok:
+                if self.kind == "video" and self.loop and index > 0:
+                    self.cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                    continue
+                if self.kind == "camera":
+                    raise SourceError(f"{self.name}: camera stopped delivering frames at frame {index}")
+                return
+            if self.kind == "camera":
+                now = time.monotonic()
+                if self._t0 is None:
+                    self._t0 = now
+                t = now - self._t0
+            else:
+                t = self.cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            yield _frame(img, t, index, self.name, f"{self.name}: frame {index}")
+            index += 1
+
+    def close(self) -> None:
+        super().close()
+        self.cap.release()
+
+
+def _read_timestamps(folder: Path) -> dict[str, float]:
+    p = folder / "timestamps.csv"
+    if not p.is_file():
+        return {}
+    out: dict[str, float] = {}
+    try:
+        with open(p, newline="", encoding="utf-8") as fh:
+            for row in csv.DictReader(fh):
+                out[row["file"]] = float(row["timestamp_s"])
+    except (KeyError, ValueError, csv.Error) as exc:
+        raise SourceError(f"{p}: malformed timestamps.csv ({exc})") from None
+    return out
+
+
+def open_source(spec: int | str | os.PathLike, *, loop: bool = False) -> FrameSource:
+    """Open a frame source.
+
+    Parameters
+    ----------
+    spec : int, str or path
+        A camera index (``0`` or ``"0"``; opened with cv2.VideoCapture requesting 1280x480), a video
+        file, a folder of images (sorted by name; ``timestamps.csv`` from :func:`record` is honoured)
+        or a single image file.
+    loop : bool
+        Restart a video or folder at its end (for demos); ignored for cameras and single images.
+
+    Raises
+    ------
+    SourceError
+        The spec names nothing readable.
+    """
+    if isinstance(spec, (int, np.integer)) or (isinstance(spec, str) and spec.strip().isdigit()):
+        idx = int(spec)
+        cap = cv2.VideoCapture(idx)
+        if not cap.isOpened():
+            cap.release()
+            raise SourceError(f"camera {idx}: cannot be opened (no such device or it is busy)")
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, FRAME_WIDTH_PX)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, FRAME_HEIGHT_PX)
+        return _CaptureSource(f"camera {idx}", "camera", cap)
+    path = Path(spec)
+    if path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        if not files:
+            raise SourceError(f"{path}: folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        return _FileSource(str(path), "folder", files, _read_timestamps(path), loop=loop)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file, folder or camera index")
+    if path.suffix.lower() in IMAGE_SUFFIXES:
+        return _FileSource(str(path), "image", [path])
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        cap.release()
+        raise SourceError(f"{path}: not a readable video or image")
+    return _CaptureSource(str(path), "video", cap, loop=loop)
+
+
+def record(source: FrameSource | int | str | os.PathLike, out_dir: str | os.PathLike, *,
+           max_frames: int | None = None, progress: bool = True, overwrite: bool = False) -> int:
+    """Save frames losslessly as ``frame_000000.png`` ... plus ``timestamps.csv``.
+
+    Each row of ``timestamps.csv`` (``index,timestamp_s,file``) is written and flushed right after
+    its PNG, so an interrupted recording (Ctrl-C, a source error) keeps everything written so far;
+    the exception is re-raised after the files are closed.
+
+    Parameters
+    ----------
+    source : FrameSource or spec
+        An open source, or anything :func:`open_source` accepts (then opened and closed here).
+    out_dir : path
+        Created if needed. Refused if it already holds a recording (frames or timestamps.csv) unless
+        ``overwrite``; then the old frames and timestamps are deleted first.
+    max_frames : int, optional
+        Stop after this many frames.
+    progress : bool
+        Show a tqdm progress bar.
+
+    Returns
+    -------
+    int
+        Number of frames written.
+    """
+    if max_frames is not None and max_frames < 0:
+        raise SourceError(f"record: max_frames must be >= 0, got {max_frames}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise SourceError(f"{out}: exists and is not a folder")
+    old = sorted(out.glob("frame_*.png")) + ([out / "timestamps.csv"] if (out / "timestamps.csv").exists() else [])
+    if old and not overwrite:
+        raise SourceError(f"{out}: already holds a recording ({len(old)} files); use --overwrite to replace it")
+    out.mkdir(parents=True, exist_ok=True)
+    for p in old:
+        p.unlink()
+    own = not isinstance(source, FrameSource)
+    src = open_source(source) if own else source
+    from tqdm import tqdm
+
+    n = 0
+    bar = tqdm(total=max_frames, desc=f"record {src.name}", unit="frame", disable=not progress)
+    try:
+        with open(out / "timestamps.csv", "w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["index", "timestamp_s", "file"])
+            fh.flush()
+            if max_frames == 0:
+                return 0
+            for frame in src:
+                name = f"frame_{n:06d}.png"
+                if not cv2.imwrite(str(out / name), np.ascontiguousarray(frame.image)):
+                    raise SourceError(f"{out / name}: cannot write")
+                w.writerow([n, repr(float(frame.timestamp_s)), name])
+                fh.flush()
+                n += 1
+                bar.update(1)
+                if max_frames is not None and n >= max_frames:
+                    break
+    finally:
+        bar.close()
+        if own:
+            src.close()
+    return n
