@@ -11,6 +11,7 @@ variants; :func:`check` compares records with it.
 from __future__ import annotations
 
 import contextlib
+import gc
 import json
 import math
 import platform
@@ -224,6 +225,7 @@ def execute(exp: Experiment, ctx: Context, *, catch: bool = True) -> dict[str, A
         write_record(record, ctx.out_dir)
         return record
     wall = time.perf_counter() - t0
+    gc.collect()  # release the experiment's headless GL contexts before the next one creates its own
     undeclared = sorted(set(result.metrics) - set(exp.metrics))
     wrong_unit = sorted(k for k, (_, u) in result.metrics.items() if k in exp.metrics and exp.metrics[k] != u)
     problem = None
