@@ -252,7 +252,7 @@ def _measure_group(padded: np.ndarray, sat_padded: np.ndarray, pad: int, cand: n
     """
     r_blob = float(np.sqrt(2) * cand[0, 2])
     r_win = params.centroid_radius_factor * r_blob + 0.5
-    r_in, r_out = r_blob + 1.5, r_blob + 3.0
+    r_in, r_out = 1.25 * r_blob + 1.0, 1.25 * r_blob + 2.5
     rmax = int(math.ceil(max(r_out, r_win)))
     ox, oy = _patch_offsets(rmax)
     d2 = ox * ox + oy * oy
@@ -302,7 +302,8 @@ def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarra
     Returns ``xy`` (N, 2) refined centres, ``contrast`` (N,) peak minus ring median, ``ring_spread``
     (N,) brightest ring sector minus ring median, ``sat`` (N,) saturated fraction of the ring,
     ``core_sat`` (N,) saturated fraction of the blob core.
-    The ring spans ``r + 1.5 .. r + 3`` px (r = sqrt(2) sigma): just outside the marker edge and,
+    The ring spans ``1.25 r + 1 .. 1.25 r + 2.5`` px (r = sqrt(2) sigma, which underestimates the
+    radius by up to one scale step): just outside the marker edge and,
     on the densest real frames (r 5.6 px, pitch 16.8 px), inside the dark gap between markers.
     """
     pad = int(math.ceil(np.sqrt(2) * max(params.sigmas_px) * max(params.centroid_radius_factor, 1.0) + 6))

@@ -111,7 +111,7 @@ def _glare_mask(grey: np.ndarray) -> np.ndarray:
 @pytest.mark.skipif(not REAL, reason=f"real TacTip frames not found in {DATA}")
 @pytest.mark.parametrize("path", REAL, ids=lambda p: p.name)
 def test_real_tactip_frames_find_331_pins_and_no_glare(path):
-    """Measured counts: raw 329, tap_1 328, tap_2 326, tap_3 329 of 331 pins (a few dim pins at the
+    """Measured counts: raw 330, tap_1 328, tap_2 330, tap_3 331 of 331 pins (a few dim pins at the
     occluded lower-right are lost); 0 detections inside the saturated glare regions."""
     img = cv2.imread(str(path))
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
