@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from pipeline import cli_geometry, cli_vision
 from pipeline.design import list_designs, load_design
 
 
@@ -18,3 +19,5 @@ def _designs(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("designs", help="list the built-in sensor designs")
     p.set_defaults(func=_designs)
+    cli_vision.register(sub)
+    cli_geometry.register(sub)
