@@ -86,7 +86,9 @@ def run(ctx: Context) -> Result:
     out.notes.append("Truth: twin.render.true_calibration(design) — the cameras the twin actually rendered with.")
     out.findings.append(Finding(
         f"chessboard calibration reaches a reprojection RMS of about {PAPER_RMS_PX} px",
-        f"twin: {report.rms_px:.3f} px over {len(report.used)} pairs (render noise and blur set this floor)",
+        f"twin: stereo {report.rms_px:.3f} px over {len(report.used)} pairs; per camera "
+        f"{report.rms_left_px:.3f} / {report.rms_right_px:.3f} px; baseline error "
+        f"{calib.baseline_mm - truth.baseline_mm:+.3f} mm",
         bool(report.rms_px <= 2 * PAPER_RMS_PX)))
 
     with paper_style() as plt:
