@@ -1,0 +1,422 @@
+"""MuJoCo model of the skin module: gel + skin (two volumetric flexes), pins, and a mocap indenter.
+
+Model (built in code with :class:`mujoco.MjSpec` from a :class:`~pipeline.design.SensorDesign`)
+------------------------------------------------------------------------------------------------
+* One tetrahedral mesh of the disc of radius ``design.gel.radius_mm`` from the outer skin surface
+  (sensor z = 0) down to the acrylic window (z = -(T + G)). Vertices lie on a tensor grid: x-y
+  spacing ``MeshSpec.fine_mm`` inside ``|x|, |y| <= fine_half_mm`` (where contact happens), growing
+  geometrically to the rim; z levels 0, -T (skin) and ``gel_levels_mm`` below the skin, then the
+  window. Each hexahedral cell is split into 6 Kuhn tetrahedra (conforming). Cells whose centre
+  lies outside the radius are dropped, so the clamped rim is a staircase approximating the circle.
+* Two 3-D flexes share the vertices: ``skin`` (the top layer, thickness T, the skin's E and ν) and
+  ``gel`` (everything below, the gel's E and ν), Saint Venant–Kirchhoff, MuJoCo's discrete
+  integrator with the CG solver. Vertices on the bottom (bonded to the acrylic) and on the lateral
+  boundary (clamped by the rigid mount) are fixed to the world body.
+* Domed designs: the mesh is warped vertically by ``design.dome_z_mm`` (full at the top, zero at
+  the window), so the outer surface is the dome; physics is otherwise identical.
+* Contact: every free vertex of the outer surface carries a small frictionless sphere (radius
+  ``CONTACT_RADIUS_MM``) whose outermost point is the vertex; the indenter is a height field of its
+  true shape (:mod:`twin.indenters`) on a mocap body. Flex elements themselves do not collide.
+* Mass scaling (:mod:`twin.materials`): ``m_i = MASS_SCALE · dt² · K_ii``; gravity off.
+* Pins: each marker's pin base is the skin-underside point at the rest marker's x-y, embedded with
+  barycentric weights in the skin tetrahedron that contains it. The pin is stiff (E_pin ≫ E_gel)
+  and rotates with the skin element it grows from: ``axis = R · (0, 0, -1)`` with ``R`` the polar
+  rotation of that element's deformation gradient; ``marker = base + H · axis``. At rest this is
+  exactly ``design.rest_markers_mm()``.
+
+MuJoCo's world frame is the sensor frame rotated 180° about x (the sensor looks down at the
+indenter on the desk): world = (x, -y, -z)_sensor. Lengths cross to metres only via :mod:`twin.units`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.design import SensorDesign
+from pipeline.errors import UserError
+from pipeline.types import HeightMap
+from twin import materials, units
+from twin.indenters import COLLISION_SPACING_MM, Indenter
+from twin.truth import Truth
+
+__all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm"]
+
+CONTACT_RADIUS_MM = 0.12     # vertex contact sphere; slope error r(1/cos θ - 1) < 0.05 mm up to 45°
+SETTLE_TOL_MM = 5e-3         # quasi-static: max vertex motion per step (mm) below this ...
+SETTLE_CONSECUTIVE = 3       # ... for this many consecutive steps
+SETTLE_MAX_STEPS = 300
+MAX_INCREMENT_MM = 0.05      # largest indenter move per physics step (keeps contact penetration << 0.2 mm cells)
+DEPTH_MARGIN_MM = 1.0        # markers must stay this far above the window: depth <= G - H - margin
+_FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
+
+
+class PhysicsError(UserError, ValueError):
+    """A physics request the model cannot honour (e.g. a press deeper than the gel allows)."""
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    """Resolution of the gel/skin mesh (mm). ``fine_mm`` sets the contact accuracy and the cost."""
+
+    fine_mm: float = 1.5
+    fine_half_mm: float = 9.0
+    growth: float = 1.5
+    skin_layers: int = 1
+    gel_levels_mm: tuple[float, ...] = (1.5, 4.0)   # depths below the skin underside; the window adds G
+
+
+@dataclass(frozen=True)
+class SettleStats:
+    """Outcome of :meth:`SkinSim.settle`: steps taken, converged flag, last per-step motion (mm), seconds."""
+
+    steps: int
+    converged: bool
+    last_motion_mm: float
+    seconds: float
+
+
+def max_depth_mm(design: SensorDesign) -> float:
+    """Deepest press the twin accepts: gel thickness − pin height − ``DEPTH_MARGIN_MM``."""
+    return design.optics.gel_thickness_mm - design.pins.height_mm - DEPTH_MARGIN_MM
+
+
+def _axis(fine_mm: float, fine_half_mm: float, growth: float, radius_mm: float) -> np.ndarray:
+    n = int(math.floor(fine_half_mm / fine_mm + 1e-9))
+    pos = list(np.arange(0, n + 1) * fine_mm)
+    step = fine_mm
+    while pos[-1] < radius_mm - 1e-9:
+        step *= growth
+        pos.append(min(pos[-1] + step, radius_mm + fine_mm) if pos[-1] + step > radius_mm else pos[-1] + step)
+    pos = np.array(pos)
+    return np.concatenate([-pos[:0:-1], pos])
+
+
+@dataclass
+class _Mesh:
+    nodes_mm: np.ndarray        # (V, 3) rest positions, sensor frame
+    tets_skin: np.ndarray       # (Ks, 4)
+    tets_gel: np.ndarray        # (Kg, 4)
+    pinned: np.ndarray          # (V,) bool
+    top: np.ndarray             # (Vt,) indices of outer-surface vertices
+    top_faces: np.ndarray       # (F, 3) into ``top`` order
+
+
+def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
+    """Tetrahedral mesh of the skin + gel disc (see module notes). Rest positions in the sensor frame."""
+    T, G, R = design.skin.thickness_mm, design.optics.gel_thickness_mm, design.gel.radius_mm
+    ax = _axis(spec.fine_mm, spec.fine_half_mm, spec.growth, R)
+    zs = [0.0] + [-T * (k + 1) / spec.skin_layers for k in range(spec.skin_layers)]
+    zs += [-T - g for g in spec.gel_levels_mm if g < G - 1e-6] + [-T - G]
+    zl = np.array(sorted(zs))                      # ascending: bottom first
+    nx, nz = len(ax), len(zl)
+    cx = 0.5 * (ax[:-1] + ax[1:])
+    keep = np.hypot(cx[:, None], cx[None, :]) < R   # (nx-1, nx-1)
+    cover = np.zeros((nx, nx), int)
+    for di in (0, 1):
+        for dj in (0, 1):
+            cover[di:nx - 1 + di, dj:nx - 1 + dj] += keep
+    used_xy = cover > 0
+    interior = cover == 4
+    I, J, K = np.meshgrid(np.arange(nx), np.arange(nx), np.arange(nz), indexing="ij")
+    gid = -np.ones((nx, nx, nz), int)
+    used = np.broadcast_to(used_xy[:, :, None], gid.shape)
+    gid[used] = np.arange(int(used.sum()))
+    nodes = np.column_stack([ax[I[used]], ax[J[used]], zl[K[used]]])
+    pinned = (K[used] == 0) | ~interior[I[used], J[used]]
+    # Kuhn split of each kept cell
+    ci, cj = np.nonzero(keep)
+    tets_by_layer = []
+    perms = [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
+    for k in range(nz - 1):
+        layer = []
+        for p in perms:
+            c = np.zeros((len(ci), 3), int)
+            verts = [gid[ci, cj, np.full(len(ci), k)]]
+            for d in p:
+                c[:, d] += 1
+                verts.append(gid[ci + c[:, 0], cj + c[:, 1], k + c[:, 2]])
+            layer.append(np.column_stack(verts))
+        tets_by_layer.append(np.vstack(layer))
+    n_skin = spec.skin_layers
+    tets_skin = np.vstack(tets_by_layer[nz - 1 - n_skin:])
+    tets_gel = np.vstack(tets_by_layer[:nz - 1 - n_skin])
+    # outer surface
+    top_gid = gid[:, :, nz - 1]
+    top = top_gid[used_xy]
+    local = -np.ones((nx, nx), int)
+    local[used_xy] = np.arange(len(top))
+    a, b = local[ci, cj], local[ci + 1, cj]
+    c_, d = local[ci + 1, cj + 1], local[ci, cj + 1]
+    top_faces = np.vstack([np.column_stack([a, b, c_]), np.column_stack([a, c_, d])])
+    if design.pattern.dome_height_mm > 0:
+        zb = -(T + G)
+        nodes[:, 2] += design.dome_z_mm(nodes[:, :2]) * (nodes[:, 2] - zb) / (0.0 - zb)
+    return _Mesh(nodes, tets_skin, tets_gel, pinned, top, top_faces)
+
+
+def _grad_shape(X: np.ndarray):
+    """Per tet (K,4,3) rest positions → volumes (K,) and shape-function gradients (K,4,3); and Dm⁻¹."""
+    Dm = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)
+    vol = np.abs(np.linalg.det(Dm)) / 6.0
+    Bi = np.linalg.inv(Dm)
+    g = np.concatenate([-Bi.sum(axis=1, keepdims=True), Bi], axis=1)
+    return vol, g, Bi
+
+
+class SkinSim:
+    """The skin module in MuJoCo with one indenter on a mocap "robot".
+
+    Parameters
+    ----------
+    design : SensorDesign
+    indenter : Indenter from :func:`twin.indenters.make_indenter`
+    mesh : MeshSpec resolution
+    timestep_s : physics step (s); the equilibrium does not depend on it
+    friction : Coulomb friction skin/indenter; 0 (default) = frictionless contact (condim 1)
+
+    Notes
+    -----
+    Poses are given as ``(x_mm, y_mm, depth_mm, yaw_deg)``: the indenter's own origin at sensor
+    ``(x, y)``, its top at sensor ``z = -depth`` (depth < 0: clear of the skin).
+    """
+
+    def __init__(self, design: SensorDesign, indenter: Indenter, *, mesh: MeshSpec = MeshSpec(),
+                 timestep_s: float = 0.01, friction: float = 0.0) -> None:
+        import mujoco
+
+        self._mj = mujoco
+        self.design, self.indenter, self.mesh_spec = design, indenter, mesh
+        self.timestep_s = float(timestep_s)
+        t0 = time.perf_counter()
+        self.mesh = m = build_mesh(design, mesh)
+        self._build(friction)
+        self._embed_pins()
+        self.pose = (0.0, 0.0, -1.0, 0.0)
+        self.set_pose(*self.pose)
+        self._mj.mj_forward(self.model, self.data)
+        self.build_seconds = time.perf_counter() - t0
+        self.steps_taken = 0
+
+    # ----- construction ---------------------------------------------------------------------
+    def _build(self, friction: float) -> None:
+        mj, m, d = self._mj, self.mesh, self.design
+        dt = self.timestep_s
+        V = len(m.nodes_mm)
+        X_m = units.mm_to_m(m.nodes_mm * _FLIP)
+        kd = np.zeros(V)
+        for tets, mat in ((m.tets_skin, materials.skin_material(d)), (m.tets_gel, materials.gel_material(d))):
+            E, nu = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
+            lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+            vol, g, _ = _grad_shape(X_m[tets])
+            np.add.at(kd, tets.ravel(), ((lam + 2 * mu) * vol[:, None] * np.sum(g * g, axis=2)).ravel())
+        spec = mj.MjSpec()
+        spec.modelname = f"skin_{d.name}"
+        o = spec.option
+        o.integrator = mj.mjtIntegrator.mjINT_DISCRETE
+        o.solver = mj.mjtSolver.mjSOL_CG
+        o.timestep = dt
+        o.gravity = [0.0, 0.0, 0.0]
+        o.tolerance = 1e-6
+        spec.memory = 256 * 1024 * 1024
+        is_top = np.zeros(V, bool)
+        is_top[m.top] = True
+        condim = 3 if friction > 0 else 1
+        r_m = float(units.mm_to_m(CONTACT_RADIUS_MM))
+        vertbody, vert = [], np.zeros((V, 3))
+        self._free = np.nonzero(~m.pinned)[0]
+        for n in range(V):
+            if m.pinned[n]:
+                vertbody.append("world")
+                vert[n] = X_m[n]
+                continue
+            b = spec.worldbody.add_body(name=f"v{n}", pos=X_m[n].tolist())
+            for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1)):
+                b.add_joint(type=mj.mjtJoint.mjJNT_SLIDE, axis=list(axis))
+            b.mass = materials.MASS_SCALE * dt * dt * kd[n]
+            b.inertia = [1e-15] * 3
+            b.explicitinertial = True
+            vertbody.append(f"v{n}")
+            if is_top[n]:
+                gm = b.add_geom(type=mj.mjtGeom.mjGEOM_SPHERE, size=[r_m, 0, 0], pos=[0, 0, r_m])
+                gm.mass, gm.contype, gm.conaffinity, gm.condim = 0.0, 2, 1, condim
+                gm.friction = [friction, 0.005, 0.0001]
+                gm.group = 3
+        for name, tets, mat in (("skin", m.tets_skin, materials.skin_material(d)),
+                                ("gel", m.tets_gel, materials.gel_material(d))):
+            f = spec.add_flex()
+            f.name, f.dim = name, 3
+            f.vertbody = vertbody
+            f.vert = vert.ravel().tolist()
+            f.elem = tets.ravel().tolist()
+            f.young, f.poisson = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
+            f.damping = materials.RAYLEIGH_DAMPING_S
+            f.contype = f.conaffinity = 0
+            f.selfcollide = mj.mjtFlexSelf.mjFLEXSELF_NONE
+            f.radius = 1e-6
+        # indenter: height field of its own-frame contact face on a mocap body
+        x, y, z = self.indenter.grid(COLLISION_SPACING_MM)
+        z = np.where(np.isfinite(z), z, np.nanmin(z))
+        self._hmin = float(z.min())
+        span = max(float(z.max()) - self._hmin, 1e-3)
+        hx, hy = self.indenter.half_size_mm
+        spec.add_hfield(name="indenter", size=[float(units.mm_to_m(hx)), float(units.mm_to_m(hy)),
+                                               float(units.mm_to_m(span)), float(units.mm_to_m(2.0))],
+                        nrow=z.shape[0], ncol=z.shape[1], userdata=((z - self._hmin) / span).ravel().tolist())
+        body = spec.worldbody.add_body(name="indenter", mocap=True)
+        g = body.add_geom(type=mj.mjtGeom.mjGEOM_HFIELD, hfieldname="indenter",
+                          pos=[0, 0, float(units.mm_to_m(self._hmin))])
+        g.contype, g.conaffinity, g.condim, g.priority = 1, 2, condim, 1
+        g.friction = [friction, 0.005, 0.0001]
+        g.solref = [dt, 1.0]
+        g.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # MuJoCo's note on flexes without equality constraints
+            self.model = spec.compile()
+        self.data = mj.MjData(self.model)
+        self._qadr = self.model.jnt_qposadr[:len(self._free) * 3].reshape(-1, 3)
+        self._top_geom = {}
+        for n in self._free[is_top[self._free]]:
+            self._top_geom[self.model.body(f"v{n}").geomadr[0]] = n
+
+    def _embed_pins(self) -> None:
+        d, m = self.design, self.mesh
+        rest = d.rest_markers_mm()
+        base = rest.copy()
+        base[:, 2] += d.pins.height_mm                       # skin underside above the marker
+        X = m.nodes_mm[m.tets_skin]                           # (K, 4, 3)
+        vol, g, Bi = _grad_shape(X)
+        rel = base[:, None, :] - X[None, :, 0, :]             # (N, K, 3)
+        lam = np.einsum("kij,nkj->nki", Bi, rel)              # (N, K, 3) barycentric 1..3
+        bary = np.concatenate([1 - lam.sum(axis=2, keepdims=True), lam], axis=2)
+        inside = np.min(bary, axis=2)
+        k = np.argmax(inside, axis=1)
+        if np.any(inside[np.arange(len(k)), k] < -1e-6):
+            raise PhysicsError(f"design {d.name}: a pin base lies outside the skin mesh")
+        self._pin_tet = m.tets_skin[k]                        # (N, 4)
+        self._pin_w = bary[np.arange(len(k)), k]              # (N, 4)
+        self._pin_Bi = Bi[k]                                  # (N, 3, 3) rest Dm^-1
+        self._rest_axis = np.array([0.0, 0.0, -1.0])
+
+    # ----- state --------------------------------------------------------------------------
+    def set_pose(self, x_mm: float, y_mm: float, depth_mm: float, yaw_deg: float) -> None:
+        """Place the indenter (mocap) at a pose; no physics step."""
+        pos_w = np.array([x_mm, -y_mm, depth_mm - self.indenter.top_mm])
+        half = -math.radians(yaw_deg) / 2.0
+        self.data.mocap_pos[0] = units.mm_to_m(pos_w)
+        self.data.mocap_quat[0] = [math.cos(half), 0.0, 0.0, math.sin(half)]
+        self.pose = (float(x_mm), float(y_mm), float(depth_mm), float(yaw_deg))
+
+    def step(self, n: int = 1) -> float:
+        """Advance ``n`` physics steps; returns the largest vertex motion of the last step (mm)."""
+        motion = 0.0
+        for _ in range(n):
+            q = self.data.qpos.copy()
+            self._mj.mj_step(self.model, self.data)
+            motion = float(units.m_to_mm(np.max(np.abs(self.data.qpos - q)))) if len(q) else 0.0
+            self.steps_taken += 1
+        return motion
+
+    def move_to(self, x_mm: float, y_mm: float, depth_mm: float, yaw_deg: float, *,
+                max_increment_mm: float = MAX_INCREMENT_MM, max_increment_deg: float = 1.0) -> int:
+        """Move the indenter in straight-line increments, one physics step each; returns steps."""
+        a, b = np.array(self.pose), np.array([x_mm, y_mm, depth_mm, yaw_deg], float)
+        n = int(max(1, math.ceil(max(np.linalg.norm(b[:3] - a[:3]) / max_increment_mm,
+                                     abs(b[3] - a[3]) / max_increment_deg))))
+        for s in range(1, n + 1):
+            self.set_pose(*(a + (b - a) * s / n))
+            self.step()
+        return n
+
+    def settle(self, *, tol_mm: float = SETTLE_TOL_MM, consecutive: int = SETTLE_CONSECUTIVE,
+               max_steps: int = SETTLE_MAX_STEPS) -> SettleStats:
+        """Step until the largest vertex motion per step stays below ``tol_mm`` for ``consecutive`` steps."""
+        t0 = time.perf_counter()
+        calm, motion, n = 0, float("inf"), 0
+        while n < max_steps and calm < consecutive:
+            motion = self.step()
+            n += 1
+            calm = calm + 1 if motion < tol_mm else 0
+        return SettleStats(n, calm >= consecutive, motion, time.perf_counter() - t0)
+
+    def warnings(self) -> dict[str, int]:
+        """MuJoCo warning counters that are non-zero (name → count)."""
+        names = [self._mj.mjtWarning(i).name for i in range(len(self.data.warning))]
+        return {n: int(w.number) for n, w in zip(names, self.data.warning) if w.number}
+
+    # ----- read-out -----------------------------------------------------------------------
+    def nodes_mm(self) -> np.ndarray:
+        """Current positions of all mesh vertices, sensor frame (V, 3) mm."""
+        V = len(self.mesh.nodes_mm)
+        return units.m_to_mm(self.data.flexvert_xpos[:V]) * _FLIP
+
+    def skin_vertices_mm(self) -> np.ndarray:
+        """Deformed outer skin surface vertices (Vt, 3), sensor frame; faces: ``mesh.top_faces``."""
+        return self.nodes_mm()[self.mesh.top]
+
+    def markers(self) -> tuple[np.ndarray, np.ndarray]:
+        """Marker face centres (N, 3) mm and unit pin axes (N, 3), sensor frame, canonical order."""
+        X = self.nodes_mm()
+        P = X[self._pin_tet]                                            # (N, 4, 3)
+        base = np.einsum("nk,nkj->nj", self._pin_w, P)
+        Ds = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], axis=2)
+        F = Ds @ self._pin_Bi
+        U, _, Vt = np.linalg.svd(F)
+        Rm = U @ Vt
+        flip = np.linalg.det(Rm) < 0
+        if np.any(flip):
+            U[flip, :, -1] *= -1
+            Rm = U @ Vt
+        axis = Rm @ self._rest_axis
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        return base + self.design.pins.height_mm * axis, axis
+
+    def indenter_heightmap(self, *, spacing_mm: float = 0.2) -> HeightMap:
+        """Indenter contact surface in the sensor frame at the current pose."""
+        x, y, depth, yaw = self.pose
+        return self.indenter.sensor_heightmap(x, y, depth, yaw, half_mm=self.design.gel.radius_mm + 2.0,
+                                              spacing_mm=spacing_mm)
+
+    def indenter_z_at(self, xy_mm: np.ndarray) -> np.ndarray:
+        """Indenter surface sensor z (mm) above sensor points (N, 2); NaN off the part."""
+        from twin.indenters import sensor_to_indenter_xy
+
+        x, y, depth, yaw = self.pose
+        xi, yi = sensor_to_indenter_xy(xy_mm[:, 0], xy_mm[:, 1], x, y, yaw)
+        return self.indenter.top_mm - self.indenter.height(xi, yi) - depth
+
+    def touching(self) -> np.ndarray:
+        """Mesh indices of the outer-surface vertices whose contact sphere touches the indenter."""
+        out = set()
+        for i in range(self.data.ncon):
+            c = self.data.contact[i]
+            for gid in c.geom:
+                if int(gid) in self._top_geom and c.dist < 1e-5:
+                    out.add(self._top_geom[int(gid)])
+        return np.array(sorted(out), dtype=np.int64)
+
+    def gap_mm(self) -> np.ndarray:
+        """Indenter − skin height (mm) at touching vertices (positive: a gap, negative: penetration)."""
+        idx = self.touching()
+        X = self.nodes_mm()[idx]
+        return self.indenter_z_at(X[:, :2]) - X[:, 2]
+
+    def contact_force_n(self) -> float:
+        """Total normal force between skin and indenter (N)."""
+        f6 = np.zeros(6)
+        total = 0.0
+        for i in range(self.data.ncon):
+            self._mj.mj_contactForce(self.model, self.data, i, f6)
+            total += f6[0]
+        return float(total)
+
+    def truth(self) -> Truth:
+        """Truth of the current state (sensor frame, mm)."""
+        xyz, axis = self.markers()
+        x, y, depth, yaw = self.pose
+        return Truth(np.arange(len(xyz)), xyz, axis, self.skin_vertices_mm(), self.mesh.top_faces,
+                     self.indenter_heightmap(), np.array([x, y, -depth, yaw]))

@@ -1,0 +1,117 @@
+"""Scripted robot motions for the mocap indenter (the paper's Dobot MG400 at 1 mm/s).
+
+A :class:`Motion` is a list of :class:`Waypoint` poses ``(x_mm, y_mm, depth_mm, yaw_deg)`` (see
+:class:`twin.physics.SkinSim`), each optionally captured as a frame. :func:`execute` drives a
+:class:`~twin.physics.SkinSim` through it: the indenter moves in straight lines in increments of at
+most ``MAX_INCREMENT_MM`` per physics step, and at every capture waypoint the sim is settled to
+quasi-static equilibrium (criterion in :data:`twin.physics.SETTLE_TOL_MM`). The equilibrium does not
+depend on the rate, so the physics may move faster than the robot; the documented robot speed sets
+the frames' timestamps (path length / speed) and is recorded in metadata.
+
+Motions (paper Sec. IV-B and IV-D):
+* ``press``: from 1 mm clear of the skin down to ``depth`` at 1 mm/s, ``n_frames`` evenly spaced.
+* ``tracking-G``: 1 mm vertical steps from 1 mm depth (1, 2, 3, 4, 5 mm).
+* ``tracking-e``: at 3 mm depth, 1 mm lateral steps in +x (0..4 mm).
+* ``tracking-o``: from touch, a rapid 2 mm down + 2 mm sideways move in 4 frames.
+* ``press_repetitions``: a press repeated with the indenter yawed by 120° between repetitions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin.physics import PhysicsError, SettleStats, SkinSim, max_depth_mm
+
+__all__ = ["Waypoint", "Motion", "press_motion", "tracking_motion", "press_repetitions", "execute",
+           "MOTIONS", "ROBOT_SPEED_MM_S", "RAPID_SPEED_MM_S"]
+
+ROBOT_SPEED_MM_S = 1.0     # paper: pressed at 1 mm/s
+RAPID_SPEED_MM_S = 20.0    # the "rapid" diagonal move of the 'o' experiment
+APPROACH_MM = 1.0          # start this far clear of the skin
+MOTIONS = ("press", "tracking-G", "tracking-e", "tracking-o")
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    x_mm: float
+    y_mm: float
+    depth_mm: float
+    yaw_deg: float = 0.0
+    capture: bool = True
+    speed_mm_s: float = ROBOT_SPEED_MM_S
+
+    @property
+    def pose(self) -> tuple[float, float, float, float]:
+        return (self.x_mm, self.y_mm, self.depth_mm, self.yaw_deg)
+
+
+@dataclass(frozen=True)
+class Motion:
+    name: str
+    waypoints: tuple[Waypoint, ...]
+
+
+def press_motion(depth_mm: float, *, n_frames: int = 1, yaw_deg: float = 0.0, x_mm: float = 0.0,
+                 y_mm: float = 0.0) -> Motion:
+    """Approach from ``APPROACH_MM`` clear of the skin to ``depth_mm``; frames at depth·k/n, k = 1..n."""
+    if n_frames < 1:
+        raise PhysicsError(f"n_frames must be >= 1, got {n_frames}")
+    wps = [Waypoint(x_mm, y_mm, -APPROACH_MM, yaw_deg, capture=False)]
+    wps += [Waypoint(x_mm, y_mm, depth_mm * k / n_frames, yaw_deg) for k in range(1, n_frames + 1)]
+    return Motion("press", tuple(wps))
+
+
+def tracking_motion(name: str, *, yaw_deg: float = 0.0) -> Motion:
+    """The paper's tracking motions (``tracking-G``, ``tracking-e``, ``tracking-o``); first frame at rest."""
+    rest = Waypoint(0.0, 0.0, -APPROACH_MM, yaw_deg, capture=True)
+    if name == "tracking-G":
+        wps = [rest] + [Waypoint(0.0, 0.0, float(d), yaw_deg) for d in (1, 2, 3, 4, 5)]
+    elif name == "tracking-e":
+        wps = [rest, Waypoint(0.0, 0.0, 3.0, yaw_deg)] + [Waypoint(float(x), 0.0, 3.0, yaw_deg) for x in (1, 2, 3, 4)]
+    elif name == "tracking-o":
+        wps = [rest, Waypoint(0.0, 0.0, 0.0, yaw_deg)]
+        wps += [Waypoint(0.5 * k, 0.0, 0.5 * k, yaw_deg, speed_mm_s=RAPID_SPEED_MM_S) for k in (1, 2, 3, 4)]
+    else:
+        raise PhysicsError(f"unknown motion {name!r}; known: {', '.join(MOTIONS)}")
+    return Motion(name, tuple(wps))
+
+
+def press_repetitions(depth_mm: float, *, repetitions: int = 3, yaw_step_deg: float = 120.0) -> Motion:
+    """The Gaussian/sine protocol: press, lift, yaw the indenter by ``yaw_step_deg``, press again."""
+    wps = []
+    for r in range(repetitions):
+        yaw = r * yaw_step_deg
+        wps += [Waypoint(0.0, 0.0, -APPROACH_MM, yaw, capture=False), Waypoint(0.0, 0.0, depth_mm, yaw)]
+    return Motion("press_repetitions", tuple(wps))
+
+
+def execute(sim: SkinSim, motion: Motion, *, progress=None) -> list[tuple[float, SettleStats, object]]:
+    """Run a motion; returns ``(timestamp_s, settle stats, Truth)`` for every captured waypoint.
+
+    The first waypoint is reached by teleporting (the indenter is clear of the skin); the timestamp
+    is the robot's path length so far divided by each segment's documented speed.
+    """
+    deepest = max(w.depth_mm for w in motion.waypoints)
+    if deepest > max_depth_mm(sim.design) + 1e-9:
+        raise PhysicsError(f"motion {motion.name!r}: depth {deepest:g} mm exceeds what the gel allows "
+                           f"({max_depth_mm(sim.design):g} mm = gel thickness - pin height - margin)")
+    out = []
+    t = 0.0
+    first = motion.waypoints[0]
+    sim.set_pose(*first.pose)
+    prev = np.array(first.pose)
+    for k, wp in enumerate(motion.waypoints):
+        if k > 0:
+            sim.move_to(*wp.pose)
+            cur = np.array(wp.pose)
+            t += float(np.linalg.norm(cur[:3] - prev[:3])) / wp.speed_mm_s
+            prev = cur
+        if wp.capture:
+            stats = sim.settle()
+            out.append((t, stats, sim.truth()))
+            if progress is not None:
+                progress.update()
+    return out
