@@ -66,9 +66,19 @@ def find_board(image: np.ndarray, board_squares: tuple[int, int] = (9, 7)) -> np
                                    (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-4))
     pts = corners.reshape(-1, 2).astype(np.float64)
     # An 8x6 inner-corner grid (both even) is symmetric under a 180 degree turn, so the detector may
-    # return it in either order. Canonical order: the first corner is the one nearer the image's
-    # top-left (smaller u + v), so both cameras of a near-parallel stereo pair agree.
-    if pts[0].sum() > pts[-1].sum():
+    # return it in either order. Canonical order: the first row runs toward +u (its direction within
+    # (-90, 90] degrees of the image's u axis). A stereo pair is made consistent in calibrate_stereo.
+    return _orient_rows_toward_u(pts, pattern[0])
+
+
+def _row_direction(pts: np.ndarray, per_row: int) -> np.ndarray:
+    """Direction of the first corner row, (2,) px: last corner of row 0 minus the first."""
+    return pts[per_row - 1] - pts[0]
+
+
+def _orient_rows_toward_u(pts: np.ndarray, per_row: int) -> np.ndarray:
+    d = _row_direction(pts, per_row)
+    if d[0] < 0 or (d[0] == 0 and d[1] < 0):
         pts = pts[::-1].copy()
     return pts
 
@@ -168,6 +178,11 @@ def calibrate_stereo(pairs: Iterable, *, board_squares: tuple[int, int] = (9, 7)
             which = "both views" if cl is None and cr is None else ("left view" if cl is None else "right view")
             skipped[name] = f"{board_squares[0]}x{board_squares[1]} board not found in the {which}"
             continue
+        # The two cameras of a near-parallel rig see the board turned alike: if the canonical orders
+        # still disagree (rows close to vertical in the image), turn the right view's order round.
+        per_row = board_squares[0] - 1
+        if float(_row_direction(cl, per_row) @ _row_direction(cr, per_row)) < 0:
+            cr = cr[::-1].copy()
         used.append(name)
         pts_l.append(cl.astype(np.float32))
         pts_r.append(cr.astype(np.float32))

@@ -73,16 +73,19 @@ def render_chessboard(K: np.ndarray, D: np.ndarray, cam_from_board: np.ndarray, 
 
 
 def chessboard_pairs(calib: StereoCalibration, n_pairs: int, rng: np.random.Generator, *,
-                     board_squares=(9, 7), square_mm=4.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """``n_pairs`` (name, left, right) views of a board at 38-55 mm, tilted up to ±25°, seen by both
-    cameras of ``calib`` (poses of the left camera frame; the right view uses R, T)."""
+                     board_squares=(9, 7), square_mm=4.0, in_plane_deg: float = 0.0,
+                     in_plane_spread_deg: float = 20.0) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``n_pairs`` (name, left, right) views of a board at 38-55 mm, tilted up to ±25° and turned in its
+    plane by ``in_plane_deg`` ± ``in_plane_spread_deg``, seen by both cameras of ``calib`` (poses of the
+    left camera frame; the right view uses R, T)."""
     cols, rows = board_squares
     centre_b = np.array([(cols - 2) / 2 * square_mm, (rows - 2) / 2 * square_mm, 0.0])
     out = []
     left_from_right = np.linalg.inv(camera_poses(calib)[0]) @ camera_poses(calib)[1]
     mid_x = left_from_right[0, 3] / 2
     for k in range(n_pairs):
-        R = rot_xyz(rng.uniform(-25, 25), rng.uniform(-25, 25), rng.uniform(-20, 20))
+        R = rot_xyz(rng.uniform(-25, 25), rng.uniform(-25, 25),
+                    in_plane_deg + rng.uniform(-in_plane_spread_deg, in_plane_spread_deg))
         c = np.array([mid_x + rng.uniform(-4, 4), rng.uniform(-3, 3), rng.uniform(38, 55)])
         T = np.eye(4)
         T[:3, :3] = R
