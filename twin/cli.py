@@ -1,9 +1,134 @@
-"""Twin subcommands of the ``stereotactip`` CLI."""
+"""Twin subcommands of the ``stereotactip`` CLI (``simulate``) and the twin benchmark (``bench twin``)."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["register", "cmd_simulate", "run_twin_bench"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this package's subcommands to the top-level parser."""
+    from twin.indenters import list_indenters
+    from twin.robot import MOTIONS
+
+    p = sub.add_parser("simulate", help="digital twin: press an indenter into a skin, write frames + truth")
+    p.add_argument("--design", default="hexagon127", help="built-in design name or TOML path")
+    p.add_argument("--indenter", default="gaussian", help=f"one of: {', '.join(list_indenters())}")
+    p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
+                   help="indenter parameter, repeatable (e.g. sigma2=10; the unit suffix may be dropped)")
+    p.add_argument("--depth", type=float, default=5.0, help="press depth, mm (0 = touching the skin)")
+    p.add_argument("--steps", type=int, default=1, help="frames captured during the press (depth·k/steps)")
+    p.add_argument("--motion", default="press", choices=MOTIONS)
+    p.add_argument("--yaw-deg", type=float, default=0.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--chessboard-pairs", type=int, default=0, metavar="N",
+                   help="instead of a press: render N skin-less chessboard pairs (calibration set)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.set_defaults(func=cmd_simulate)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    import cv2
+
+    from pipeline.design import load_design
+    from twin import simulate
+    from twin.indenters import make_indenter, parse_params
+
+    design = load_design(args.design)
+    rng = np.random.default_rng(args.seed)
+    out = Path(args.out)
+    if args.chessboard_pairs:
+        from twin.render import render_chessboard_pairs, true_calibration
+
+        t0 = time.perf_counter()
+        frames = render_chessboard_pairs(design, args.chessboard_pairs, rng)
+        out.mkdir(parents=True, exist_ok=True)
+        for i, f in enumerate(frames):
+            cv2.imwrite(str(out / f"frame_{i:04d}.png"), f.image)
+        true_calibration(design).save_yaml(out / "calib.yaml")
+        (out / "meta.json").write_text(json.dumps({"design": design.name, "chessboard_pairs": len(frames),
+                                                   "seed": args.seed, "seconds": time.perf_counter() - t0}, indent=2))
+        print(f"wrote {len(frames)} chessboard pairs to {out}")
+        return 0
+    indenter = make_indenter(args.indenter, **parse_params(args.indenter, args.param))
+    t0 = time.perf_counter()
+    if args.motion == "press":
+        run = simulate.press(design, indenter, args.depth, n_frames=args.steps, yaw_deg=args.yaw_deg, rng=rng,
+                             progress=True)
+    else:
+        run = simulate.run_motion(design, indenter, args.motion, yaw_deg=args.yaw_deg, rng=rng, progress=True)
+    simulate.write_run(out, design, indenter, run, extra_meta={
+        "depth_mm": args.depth, "steps": args.steps, "seed": args.seed, "yaw_deg": args.yaw_deg,
+        "total_s": time.perf_counter() - t0})
+    print(f"wrote {len(run)} frame(s) + truth to {out}")
+    return 0
+
+
+def run_twin_bench(out_dir, quick: bool = False) -> dict:
+    """Twin speed and fidelity: s per 5 mm press, ms per stereo frame, skin–indenter gap (σ²=10 Gaussian).
+
+    Writes ``out_dir/twin.json`` and returns the same dict. Goals on the 2-core reference machine:
+    press ≤ 3 s with gap ≤ 0.1 mm; ≤ 50 ms per stereo frame.
+    """
+    from tqdm import tqdm
+
+    from pipeline.design import load_design
+    from twin.indenters import make_indenter
+    from twin.physics import SkinSim
+    from twin import robot
+
+    design = load_design("hexagon127")
+    ind = make_indenter("gaussian", h_mm=5.0, sigma2_mm2=10.0)
+    n_press = 3
+    press_s, build_s, settle_steps, converged = [], [], [], []
+    gaps = None
+    for _ in tqdm(range(n_press), desc="bench twin: presses"):
+        t0 = time.perf_counter()
+        sim = SkinSim(design, ind)
+        t1 = time.perf_counter()
+        (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0))
+        press_s.append(time.perf_counter() - t0)
+        build_s.append(t1 - t0)
+        settle_steps.append(stats.steps)
+        converged.append(stats.converged)
+        gaps = sim.gap_mm()
+        warn = sim.warnings()
+    result = {
+        "units": {"press_s": "s", "frame_ms": "ms", "gap": "mm"},
+        "design": design.name, "indenter": {"name": "gaussian", "h_mm": 5.0, "sigma2_mm2": 10.0}, "depth_mm": 5.0,
+        "press_s_median": float(np.median(press_s)), "press_s_all": press_s,
+        "model_build_s_median": float(np.median(build_s)), "settle_steps": settle_steps,
+        "settle_converged": converged, "mesh_dofs": int(sim.model.nv),
+        "gap_max_mm": float(np.max(np.abs(gaps))) if len(gaps) else float("nan"),
+        "gap_rms_mm": float(np.sqrt(np.mean(gaps**2))) if len(gaps) else float("nan"),
+        "gap_points": int(len(gaps)), "mujoco_warnings": warn,
+        "goals": {"press_s": 3.0, "gap_max_mm": 0.1, "frame_ms": 50.0},
+    }
+    try:
+        from twin.render import StereoRenderer
+    except ImportError as exc:   # renderer not installed / no GL
+        result["frame_ms_median"] = None
+        result["render_note"] = f"renderer unavailable: {exc}"
+    else:
+        r = StereoRenderer(design, rng=np.random.default_rng(0))
+        n = 20
+        r.render_markers(truth.marker_xyz_mm, truth.marker_axis, skin_vertices_mm=truth.skin_vertices_mm,
+                         skin_faces=truth.skin_faces)   # warm-up (static meshes, shaders)
+        ms = []
+        for _ in tqdm(range(n), desc="bench twin: frames"):
+            t0 = time.perf_counter()
+            r.render_markers(truth.marker_xyz_mm, truth.marker_axis, skin_vertices_mm=truth.skin_vertices_mm,
+                             skin_faces=truth.skin_faces)
+            ms.append((time.perf_counter() - t0) * 1e3)
+        result["frame_ms_median"] = float(np.median(ms))
+        result["frame_ms_n"] = n
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "twin.json").write_text(json.dumps(result, indent=2))
+    return result
