@@ -150,7 +150,22 @@ def offscreen_renderer(width_px: int, height_px: int):
                           f"{os.environ.get('PYOPENGL_PLATFORM')!r}: {exc}; try PYOPENGL_PLATFORM=osmesa "
                           "or egl") from exc
     r._renderer._read_main_framebuffer = types.MethodType(_read_colour_only, r._renderer)
+    platform = r._platform
+    if hasattr(platform, "_egl_display"):
+        # pyrender's EGL teardown calls eglTerminate on the device's display, which Mesa shares between
+        # all contexts of the process: deleting one renderer would break every other one. Destroy only
+        # this renderer's context.
+        platform.delete_context = types.MethodType(_egl_delete_context_only, platform)
     return r
+
+
+def _egl_delete_context_only(self) -> None:
+    from OpenGL.EGL import eglDestroyContext  # noqa: PLC0415
+
+    if self._egl_display is not None and self._egl_context is not None:
+        eglDestroyContext(self._egl_display, self._egl_context)
+    self._egl_context = None
+    self._egl_display = None
 
 
 def upload_positions(renderer, primitive, positions: np.ndarray) -> None:

@@ -221,19 +221,27 @@ def _tile(v: np.ndarray, f: np.ndarray, n: int) -> np.ndarray:
 
 
 def _chessboard_meshes(spec: ChessboardSpec, subdiv: int) -> tuple[tuple, tuple]:
-    """(black, white) meshes of the board in its frame (z = 0 face, -z facing)."""
+    """(black, white) meshes of the board in its frame (z = 0 face, -z facing).
+
+    The board is one grid of cells (margin strips included) whose break lines are shared by every
+    cell, so neighbouring quads have identical edge vertices: no T-junctions, hence no cracks or
+    doubly-covered samples whose colour would depend on the (unordered) draw order.
+    """
     cols, rows = spec.squares
     s, m = spec.square_mm, spec.margin_mm
-    x0, y0 = -cols * s / 2.0, -rows * s / 2.0
-    black, white = [], []
-    for c in range(cols):
-        for r in range(rows):
-            q = _grid_quad(x0 + c * s, x0 + (c + 1) * s, y0 + r * s, y0 + (r + 1) * s, subdiv)
-            (black if (c + r) % 2 == 0 else white).append(q)
+    xb = (np.arange(cols + 1) - cols / 2.0) * s
+    yb = (np.arange(rows + 1) - rows / 2.0) * s
     if m > 0:
-        X0, X1, Y0, Y1 = x0 - m, -x0 + m, y0 - m, -y0 + m
-        for rect in ((X0, X1, Y0 - 0, y0), (X0, X1, -y0, Y1), (X0, x0, y0, -y0), (-x0, X1, y0, -y0)):
-            white.append(_grid_quad(*rect, subdiv))
+        xb = np.concatenate([[xb[0] - m], xb, [xb[-1] + m]])
+        yb = np.concatenate([[yb[0] - m], yb, [yb[-1] + m]])
+    off = 1 if m > 0 else 0
+    black, white = [], []
+    for i in range(len(xb) - 1):
+        for j in range(len(yb) - 1):
+            c, r = i - off, j - off
+            q = _grid_quad(xb[i], xb[i + 1], yb[j], yb[j + 1], subdiv)
+            is_square = 0 <= c < cols and 0 <= r < rows
+            (black if is_square and (c + r) % 2 == 0 else white).append(q)
     return _merge(black), _merge(white)
 
 
@@ -420,6 +428,21 @@ class StereoRenderer:
             self._set_mesh(side, "leds", led_v, led_f, LED_BGR)
             self._set_mesh(side, "skin_flat", self._refracted(side, skin_v, True), skin_f, SKIN_BGR)
         self._static_done.add("module")
+
+    def shading_map(self, side: str, *, through_stack: bool = True) -> np.ndarray:
+        """Relative illumination of camera ``side`` per output pixel, (H, W) float32.
+
+        LED shading × vignetting for the skin module (``through_stack=True``), vignetting only for the
+        skin-less calibration set-up. The rendered DN of a surface of albedo a is ``255 · a · shading``
+        before blur and noise.
+        """
+        if side not in self._views:
+            raise RenderError(f"side: expected 'left' or 'right', got {side!r}")
+        v = self._views[side]
+        m = (v.shade_module if through_stack else v.shade_lab)[..., 0]
+        if self._scale > 1:
+            m = cv2.resize(m, (self._w_out, self._h_out), interpolation=cv2.INTER_AREA)
+        return m.copy()
 
     # ----- rendering --------------------------------------------------------------------------
     def _render_view(self, side: str, visible: set[str], lab: bool) -> np.ndarray:
