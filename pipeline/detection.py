@@ -76,7 +76,7 @@ class DetectionParams:
     min_separation_px: float = 3.0
     border_px: int = 2
     isolation: float = 0.5
-    max_size_ratio: float = 1.75
+    max_size_ratio: float = 1.4
     max_elongation: float = 4.0
     saturation_level: int = 250
     max_saturated_fraction: float = 0.25
@@ -113,6 +113,8 @@ def to_grey(image: np.ndarray, *, name: str = "image") -> np.ndarray:
 _KXX = (np.array([1.0, -2.0, 1.0], np.float32), np.array([1.0], np.float32))
 _KD = np.array([-0.5, 0.0, 0.5], np.float32)
 _SECTORS = 8  # angular sectors of the background ring for the isolation test
+_RING_IN = 1.25
+
 
 
 class _Workspace:
@@ -138,11 +140,13 @@ class _Workspace:
         return buf
 
 
-def _doh(level: np.ndarray, sigma: float, tag: str = "") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _doh(level: np.ndarray, sigma: float, tag: str = "", *, norm_sigma: float | None = None
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Blurred Hessian entries and the bright-blob DoH response on one pyramid level.
 
     Element-wise work goes through OpenCV (SIMD) into reused buffers; the returned arrays are
-    workspace views, valid until the next call with the same ``tag``.
+    workspace views, valid until the next call with the same ``tag``. ``sigma`` is the blur applied
+    here; ``norm_sigma`` (default ``sigma``) the total scale, in level px, used to normalise the DoH.
     """
     shp = level.shape
     W = lambda n: _Workspace.get(n + tag, shp)  # noqa: E731
@@ -154,58 +158,138 @@ def _doh(level: np.ndarray, sigma: float, tag: str = "") -> tuple[np.ndarray, np
     t2 = cv2.multiply(lxy, lxy, dst=W("t2"))
     doh = cv2.subtract(t1, t2, dst=W("doh"))
     lap = cv2.add(lxx, lyy, dst=W("t1"))
-    bright = cv2.threshold(lap, 0.0, float(sigma**4), cv2.THRESH_BINARY_INV, dst=W("t2"))[1]
+    ns = sigma if norm_sigma is None else norm_sigma
+    bright = cv2.threshold(lap, 0.0, float(ns**4), cv2.THRESH_BINARY_INV, dst=W("t2"))[1]
     return cv2.multiply(doh, bright, dst=W("doh")), lxx, lyy, lxy
 
 
+def _half(img: np.ndarray, name: str) -> np.ndarray:
+    """Exact 2x2 mean (odd last row/column dropped) into a reused buffer."""
+    h2, w2 = img.shape[0] // 2, img.shape[1] // 2
+    src = img if img.shape == (2 * h2, 2 * w2) else img[: 2 * h2, : 2 * w2]
+    return cv2.resize(src, (w2, h2), dst=_Workspace.get(name, (h2, w2)), interpolation=cv2.INTER_AREA)
+
+
+def _level(grey_f: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, float]:
+    """Half-octave pyramid level ``j``: the image area-reduced ~``sqrt(2)**j`` times.
+
+    Even levels are exact 2x2 means of the level two below; odd level 1 is an INTER_AREA resize of
+    the full image by 1/sqrt(2). Returns (image, fx, fy): level pixel ``(i_x, i_y)`` is centred at full
+    pixel ``((i_x + 0.5) fx - 0.5, (i_y + 0.5) fy - 0.5)``.
+    """
+    if j not in cache:
+        if j == 0:
+            cache[0] = (grey_f, 1.0, 1.0)
+        elif j == 1:
+            h, w = grey_f.shape
+            w1, h1 = max(1, int(round(w / math.sqrt(2)))), max(1, int(round(h / math.sqrt(2))))
+            img = cv2.resize(grey_f, (w1, h1), dst=_Workspace.get("lvl1", (h1, w1)), interpolation=cv2.INTER_AREA)
+            cache[1] = (img, w / w1, h / h1)
+        else:
+            prev, fx, fy = _level(grey_f, j - 2, cache)
+            if min(prev.shape) < 10:
+                cache[j] = cache[j - 2]
+            else:
+                cache[j] = (_half(prev, f"lvl{j}"), 2 * fx, 2 * fy)
+    return cache[j]
+
+
+#: Scales run on a half-octave area pyramid at this level blur (level px). Every scale then sees the
+#: same discretisation (3-tap second differences of a Gaussian of sigma ~1 are ~10 % below the
+#: continuous ones, the SAME 10 % at every scale, so scale selection is unbiased), the blob is
+#: ~1.4 level px in radius, and the work is a fraction of the full-resolution scale space. Centres are
+#: refined afterwards on the full-resolution image.
+_LEVEL_SIGMA = 0.95
+
+
 def _candidates(grey_f: np.ndarray, params: DetectionParams):
-    """Scale-space maxima: arrays (x_full, y_full, sigma_full, response, elongation)."""
+    """Scale-space maxima: arrays (x_full, y_full, sigma_full, response, elongation).
+
+    Scale ``s`` (full-resolution px) is evaluated on the area-averaged level ``k`` with
+    ``s / 2**k`` in about [0.7, 1.4): the blob is 1-2 level px in radius, which is all the DoH needs
+    to find and size it, and the work is ~4x less than one octave finer. Centres are refined later on
+    the full-resolution image.
+    """
     sig = np.asarray(sorted(params.sigmas_px), dtype=np.float64)
-    octave = np.floor(np.log2(np.maximum(sig / 1.4, 1.0))).astype(int)
-    pyr = [grey_f]
+    level_of = np.floor(2 * np.log2(np.maximum(sig / _LEVEL_SIGMA, 1.0))).astype(int)
+    cache: dict = {}
     out = []
     kernel = np.ones((3, 3), np.uint8)
-    for L in range(int(octave.max()) + 1):
-        if L > 0:
-            prev = pyr[-1]
-            shp = ((prev.shape[0] + 1) // 2, (prev.shape[1] + 1) // 2)
-            pyr.append(cv2.pyrDown(prev, dst=_Workspace.get(f"pyr{L}", shp)))
-        level = pyr[L]
-        if min(level.shape) < 5:
-            break
+    maps = []  # per scale: (doh, fx, fy) or None
+    for i_s, (j, s_full) in enumerate(zip(level_of, sig)):
+        level, fx, fy = _level(grey_f, int(j), cache)
+        f = math.sqrt(fx * fy)
         shp = level.shape
-        for s_full in sig[octave == L]:
-            s = s_full / 2**L
-            doh, lxx, lyy, lxy = _doh(level, s)
+        if min(shp) < 5:
+            maps.append(None)
+            continue
+        if True:
+            # blur on top of the box averaging so that the total scale is s_full
+            s_lvl = s_full / f
+            s_blur = math.sqrt(max(s_full**2 - max(f * f - 1, 0.0) / 12.0, 0.25 * s_full**2)) / f
+            doh, lxx, lyy, lxy = _doh(level, s_blur, f"s{i_s}", norm_sigma=s_lvl)
+            maps.append((doh, fx, fy))
             dil = cv2.dilate(doh, kernel, dst=_Workspace.get("dil", shp))
             m1 = cv2.compare(doh, dil, cv2.CMP_GE, dst=_Workspace.get("m1", shp, np.uint8))
             m2 = cv2.compare(doh, float(params.threshold), cv2.CMP_GT, dst=_Workspace.get("m2", shp, np.uint8))
             peaks = cv2.bitwise_and(m1, m2, dst=m1)
-            b = max(1, int(math.ceil(params.border_px / 2**L)))
+            b = max(1, int(math.ceil(params.border_px / min(fx, fy))))
             peaks[:b, :] = 0
             peaks[-b:, :] = 0
             peaks[:, :b] = 0
             peaks[:, -b:] = 0
-            nz = cv2.findNonZero(peaks)
-            if nz is None or nz.size == 0:
+            flat = np.flatnonzero(peaks)
+            if flat.size == 0:
                 continue
-            nz = nz.reshape(-1, 2)
-            xs, ys = nz[:, 0].astype(np.intp), nz[:, 1].astype(np.intp)
+            ys, xs = np.divmod(flat, shp[1])
             # sub-pixel peak in the response (refined later on the full image)
             c = doh[ys, xs].astype(np.float64)
-            xp, xm = doh[ys, np.minimum(xs + 1, shp[1] - 1)], doh[ys, np.maximum(xs - 1, 0)]
-            yp, ym = doh[np.minimum(ys + 1, shp[0] - 1), xs], doh[np.maximum(ys - 1, 0), xs]
+            xp, xm = doh[ys, xs + 1], doh[ys, xs - 1]  # peaks are >= 1 px inside the level
+            yp, ym = doh[ys + 1, xs], doh[ys - 1, xs]
             dx = np.clip(0.5 * (xp - xm) / np.maximum(2 * c - xp - xm, 1e-12), -0.5, 0.5)
             dy = np.clip(0.5 * (yp - ym) / np.maximum(2 * c - yp - ym, 1e-12), -0.5, 0.5)
+            # peak value of the fitted parabolas (a sample up to half a level px off the peak
+            # under-reads it, which would bias scale selection towards finer levels)
+            c = c + 0.25 * ((xp - xm) * dx + (yp - ym) * dy)
             a, d, e = (v[ys, xs].astype(np.float64) for v in (lxx, lyy, lxy))
             tr, det = a + d, a * d - e * e
             disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
             l1, l2 = np.abs(tr / 2 - disc), np.abs(tr / 2 + disc)
             elong = np.maximum(l1, l2) / np.maximum(np.minimum(l1, l2), 1e-12)
-            out.append(np.column_stack([(xs + dx) * 2**L, (ys + dy) * 2**L, np.full(len(xs), s_full), c, elong]))
+            out.append(np.column_stack([(xs + dx + 0.5) * fx - 0.5, (ys + dy + 0.5) * fy - 0.5,
+                                        np.full(len(xs), float(i_s)), c, elong]))
     if not out:
         return np.empty((0, 5))
-    return np.concatenate(out)
+    cand = np.concatenate(out)
+    # continuous scale: parabola through the responses at the two neighbouring scales (log-sigma
+    # axis) at the same place; the discrete grid is sqrt(2) apart, too coarse to size the ring
+    # outside the marker
+    i_s = cand[:, 2].astype(np.intp)
+    resp = np.full((len(cand), 3), np.nan)
+    resp[:, 1] = cand[:, 3]
+    for side, col in ((-1, 0), (1, 2)):
+        for k in np.unique(i_s):
+            kk = k + side
+            if not 0 <= kk < len(maps) or maps[kk] is None:
+                continue
+            doh, fx, fy = maps[kk]
+            g = np.nonzero(i_s == k)[0]
+            u = np.clip(np.rint((cand[g, 0] + 0.5) / fx - 0.5).astype(np.intp), 0, doh.shape[1] - 1)
+            v = np.clip(np.rint((cand[g, 1] + 0.5) / fy - 0.5).astype(np.intp), 0, doh.shape[0] - 1)
+            resp[g, col] = doh[v, u]
+    log_s = np.log2(sig)
+    step = np.diff(log_s)
+    lo = np.where(np.isnan(resp[:, 0]), -np.inf, resp[:, 0])
+    hi = np.where(np.isnan(resp[:, 2]), -np.inf, resp[:, 2])
+    peak = (resp[:, 1] >= lo) & (resp[:, 1] >= hi) & np.isfinite(lo) & np.isfinite(hi)
+    curv = np.where(peak, lo - 2 * resp[:, 1] + hi, -1.0)
+    delta = np.where(peak & (curv < 0), np.clip(0.5 * (lo - hi) / np.minimum(curv, -1e-12), -0.5, 0.5), 0.0)
+    st = np.where(delta < 0, np.r_[step, 0.5][np.maximum(i_s - 1, 0)] if len(step) else 0.5,
+                  np.r_[step, 0.5][np.minimum(i_s, len(step))] if len(step) else 0.5)
+    s_cont = 2.0 ** (log_s[i_s] + delta * st)
+    # quantised to 1/16 octave so that blobs of one size share pixel offsets when measured
+    cand[:, 2] = 2.0 ** (np.rint(16 * np.log2(s_cont)) / 16)
+    return cand
 
 
 def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
@@ -243,43 +327,56 @@ def _patch_offsets(rmax: int) -> tuple[np.ndarray, np.ndarray]:
     return ox.ravel(), oy.ravel()
 
 
-def _measure_group(padded: np.ndarray, sat_padded: np.ndarray, pad: int, cand: np.ndarray,
-                   params: DetectionParams):
-    """Centroid + photometry for candidates of ONE scale (same pixel offsets). See _refine_and_measure.
-
-    Rings, sectors and windows are laid out about the rounded centre (<= 0.71 px off), so every
-    candidate of a group gathers the same offsets: only the pixels actually used are read.
-    """
-    r_blob = float(np.sqrt(2) * cand[0, 2])
+def _group_offsets(r_blob: float, params: DetectionParams):
+    """Pixel offsets (relative to a rounded centre) of the ring, its sectors, the centroid window and
+    the core for blobs of radius ``r_blob``; ring offsets are sorted by sector. Cached per radius."""
+    key = (r_blob, params.centroid_radius_factor)
+    hit = _OFFSETS.get(key)
+    if hit is not None:
+        return hit
     r_win = params.centroid_radius_factor * r_blob + 0.5
-    r_in, r_out = 1.25 * r_blob + 1.0, 1.25 * r_blob + 2.5
+    r_in, r_out = _RING_IN * r_blob + 1.0, _RING_IN * r_blob + 2.5
     rmax = int(math.ceil(max(r_out, r_win)))
     ox, oy = _patch_offsets(rmax)
     d2 = ox * ox + oy * oy
     ring_sel = (d2 >= r_in * r_in) & (d2 <= r_out * r_out)
     rox, roy = ox[ring_sel], oy[ring_sel]
     sector = (np.floor((np.arctan2(roy, rox) + np.pi) * (_SECTORS / (2 * np.pi))).astype(np.intp)) % _SECTORS
+    o = np.argsort(sector, kind="stable")
+    rox, roy, sector = rox[o], roy[o], sector[o]
+    starts = np.searchsorted(sector, np.arange(_SECTORS))
     win_sel = d2 <= r_win * r_win
-    wox, woy = ox[win_sel], oy[win_sel]
     core_sel = d2 <= (0.5 * r_blob + 0.5) ** 2
-    cox, coy = ox[core_sel], oy[core_sel]
+    hit = (rox, roy, sector, starts, ox[win_sel], oy[win_sel], ox[core_sel], oy[core_sel])
+    if len(_OFFSETS) > 256:
+        _OFFSETS.clear()
+    _OFFSETS[key] = hit
+    return hit
 
-    ix = np.rint(cand[:, 0]).astype(np.intp)[:, None] + pad
-    iy = np.rint(cand[:, 1]).astype(np.intp)[:, None] + pad
-    rv = padded[iy + roy, ix + rox]
-    inside = rv >= 0
-    bg = np.nan_to_num(_row_median(rv, inside), nan=0.0)
-    ring_hi = np.full(len(cand), -np.inf)
-    for k in range(_SECTORS):
-        m = inside & (sector == k)
-        cnt = m.sum(1)
-        mean = np.where(m, rv, 0.0).sum(1) / np.maximum(cnt, 1)
-        ring_hi = np.where(cnt > 0, np.maximum(ring_hi, mean), ring_hi)
-    sat = (inside & sat_padded[iy + roy, ix + rox]).sum(1) / np.maximum(inside.sum(1), 1)
-    core_v = padded[iy + coy, ix + cox]
-    peak = core_v.max(axis=1)
-    core_sat = (sat_padded[iy + coy, ix + cox]).mean(axis=1)
 
+_OFFSETS: dict[tuple, tuple] = {}
+
+
+def _measure_group(padded: np.ndarray, sat_padded: np.ndarray, pad: int, cand: np.ndarray,
+                   params: DetectionParams):
+    """Centroid + photometry for candidates of ONE scale (same pixel offsets). See _refine_and_measure.
+
+    The centroid is iterated first (background = ring median about the candidate, robust to the
+    candidate being a pixel or two off, as on the coarse pyramid levels); rings, sectors and the
+    core are then laid out about the rounded refined centre (<= 0.71 px off), so every candidate of a
+    group gathers the same offsets: only the pixels actually used are read.
+    """
+    r_blob = float(np.sqrt(2) * cand[0, 2])
+    rox, roy, sector, starts, wox, woy, cox, coy = _group_offsets(r_blob, params)
+
+    def ring_median(cx, cy):
+        rv = padded[cy[:, None] + roy, cx[:, None] + rox]
+        inside = rv >= 0
+        return rv, inside, np.nan_to_num(_row_median(rv, inside), nan=0.0)
+
+    ix = np.rint(cand[:, 0]).astype(np.intp) + pad
+    iy = np.rint(cand[:, 1]).astype(np.intp) + pad
+    bg = ring_median(ix, iy)[2]
     xy = cand[:, :2].copy()
     for _ in range(max(1, params.centroid_iterations)):
         cx, cy = np.rint(xy[:, 0]).astype(np.intp), np.rint(xy[:, 1]).astype(np.intp)
@@ -293,6 +390,18 @@ def _measure_group(padded: np.ndarray, sat_padded: np.ndarray, pad: int, cand: n
         # a centroid that runs away (neighbour or plateau in the window) keeps the DoH peak
         moved = np.hypot(*(new - cand[:, :2]).T)
         xy = np.where((moved <= 0.5 * r_blob + 1.0)[:, None], new, cand[:, :2])
+
+    # photometry about the refined centre
+    ix = np.rint(xy[:, 0]).astype(np.intp) + pad
+    iy = np.rint(xy[:, 1]).astype(np.intp) + pad
+    rv, inside, bg = ring_median(ix, iy)
+    cnt = np.add.reduceat(inside.astype(np.int32), starts, axis=1)
+    tot = np.add.reduceat(np.where(inside, rv, 0.0), starts, axis=1)
+    mean = np.where(cnt > 0, tot / np.maximum(cnt, 1), -np.inf)
+    ring_hi = mean.max(axis=1)
+    sat = (inside & sat_padded[iy[:, None] + roy, ix[:, None] + rox]).sum(1) / np.maximum(inside.sum(1), 1)
+    peak = padded[iy[:, None] + coy, ix[:, None] + cox].max(axis=1)
+    core_sat = (sat_padded[iy[:, None] + coy, ix[:, None] + cox]).mean(axis=1)
     return xy, peak - bg, ring_hi - bg, sat, core_sat
 
 
