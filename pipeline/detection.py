@@ -203,93 +203,93 @@ _LEVEL_SIGMA = 0.95
 
 
 def _candidates(grey_f: np.ndarray, params: DetectionParams):
-    """Scale-space maxima: arrays (x_full, y_full, sigma_full, response, elongation).
+    """Scale-space maxima: (N, 6) array of x_full, y_full, sigma_full (continuous), response,
+    elongation, measuring scale (sigma quantised to 1/8 octave, shared pixel offsets per group).
 
-    Scale ``s`` (full-resolution px) is evaluated on the area-averaged level ``k`` with
-    ``s / 2**k`` in about [0.7, 1.4): the blob is 1-2 level px in radius, which is all the DoH needs
-    to find and size it, and the work is ~4x less than one octave finer. Centres are refined later on
-    the full-resolution image.
+    Scale ``s`` (full-resolution px) is evaluated on the half-octave area pyramid level where it is
+    about ``_LEVEL_SIGMA`` level px: the blob is ~1.4 level px in radius, which is all the DoH needs
+    to find and size it. A peak is kept only where it is also a maximum across scale (against the two
+    neighbouring scales sampled at the same place: edge and plateau responses of a marker at finer
+    scales fall here), and its scale is refined by a parabola in log-sigma through those three
+    responses. Centres are refined later on the full-resolution image.
     """
     sig = np.asarray(sorted(params.sigmas_px), dtype=np.float64)
+    log_s = np.log2(sig)
     level_of = np.floor(2 * np.log2(np.maximum(sig / _LEVEL_SIGMA, 1.0))).astype(int)
     cache: dict = {}
-    out = []
-    kernel = np.ones((3, 3), np.uint8)
-    maps = []  # per scale: (doh, fx, fy) or None
+    maps: list = []  # per scale: (doh, lxx, lyy, lxy, fx, fy) or None
     for i_s, (j, s_full) in enumerate(zip(level_of, sig)):
         level, fx, fy = _level(grey_f, int(j), cache)
-        f = math.sqrt(fx * fy)
-        shp = level.shape
-        if min(shp) < 5:
+        if min(level.shape) < 5:
             maps.append(None)
             continue
-        if True:
-            # blur on top of the box averaging so that the total scale is s_full
-            s_lvl = s_full / f
-            s_blur = math.sqrt(max(s_full**2 - max(f * f - 1, 0.0) / 12.0, 0.25 * s_full**2)) / f
-            doh, lxx, lyy, lxy = _doh(level, s_blur, f"s{i_s}", norm_sigma=s_lvl)
-            maps.append((doh, fx, fy))
-            dil = cv2.dilate(doh, kernel, dst=_Workspace.get("dil", shp))
-            m1 = cv2.compare(doh, dil, cv2.CMP_GE, dst=_Workspace.get("m1", shp, np.uint8))
-            m2 = cv2.compare(doh, float(params.threshold), cv2.CMP_GT, dst=_Workspace.get("m2", shp, np.uint8))
-            peaks = cv2.bitwise_and(m1, m2, dst=m1)
-            b = max(1, int(math.ceil(params.border_px / min(fx, fy))))
-            peaks[:b, :] = 0
-            peaks[-b:, :] = 0
-            peaks[:, :b] = 0
-            peaks[:, -b:] = 0
-            flat = np.flatnonzero(peaks)
-            if flat.size == 0:
-                continue
-            ys, xs = np.divmod(flat, shp[1])
-            # sub-pixel peak in the response (refined later on the full image)
-            c = doh[ys, xs].astype(np.float64)
-            xp, xm = doh[ys, xs + 1], doh[ys, xs - 1]  # peaks are >= 1 px inside the level
-            yp, ym = doh[ys + 1, xs], doh[ys - 1, xs]
-            dx = np.clip(0.5 * (xp - xm) / np.maximum(2 * c - xp - xm, 1e-12), -0.5, 0.5)
-            dy = np.clip(0.5 * (yp - ym) / np.maximum(2 * c - yp - ym, 1e-12), -0.5, 0.5)
-            # peak value of the fitted parabolas (a sample up to half a level px off the peak
-            # under-reads it, which would bias scale selection towards finer levels)
-            c = c + 0.25 * ((xp - xm) * dx + (yp - ym) * dy)
-            a, d, e = (v[ys, xs].astype(np.float64) for v in (lxx, lyy, lxy))
-            tr, det = a + d, a * d - e * e
-            disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
-            l1, l2 = np.abs(tr / 2 - disc), np.abs(tr / 2 + disc)
-            elong = np.maximum(l1, l2) / np.maximum(np.minimum(l1, l2), 1e-12)
-            out.append(np.column_stack([(xs + dx + 0.5) * fx - 0.5, (ys + dy + 0.5) * fy - 0.5,
-                                        np.full(len(xs), float(i_s)), c, elong]))
+        f = math.sqrt(fx * fy)
+        # blur on top of the box averaging so that the total scale is s_full
+        s_blur = math.sqrt(max(s_full**2 - max(f * f - 1, 0.0) / 12.0, 0.25 * s_full**2)) / f
+        maps.append(_doh(level, s_blur, f"s{i_s}", norm_sigma=s_full / f) + (fx, fy))
+
+    def sample(k: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        if not 0 <= k < len(maps) or maps[k] is None:
+            return np.full(len(x), -np.inf)
+        doh, fx, fy = maps[k][0], maps[k][4], maps[k][5]
+        u = np.clip(np.rint((x + 0.5) / fx - 0.5).astype(np.intp), 0, doh.shape[1] - 1)
+        v = np.clip(np.rint((y + 0.5) / fy - 0.5).astype(np.intp), 0, doh.shape[0] - 1)
+        return doh[v, u].astype(np.float64)
+
+    out = []
+    kernel = np.ones((3, 3), np.uint8)
+    for i_s, m in enumerate(maps):
+        if m is None:
+            continue
+        doh, lxx, lyy, lxy, fx, fy = m
+        shp = doh.shape
+        dil = cv2.dilate(doh, kernel, dst=_Workspace.get("dil", shp))
+        m1 = cv2.compare(doh, dil, cv2.CMP_GE, dst=_Workspace.get("m1", shp, np.uint8))
+        m2 = cv2.compare(doh, float(params.threshold), cv2.CMP_GT, dst=_Workspace.get("m2", shp, np.uint8))
+        peaks = cv2.bitwise_and(m1, m2, dst=m1)
+        b = max(1, int(math.ceil(params.border_px / min(fx, fy))))
+        peaks[:b, :] = 0
+        peaks[-b:, :] = 0
+        peaks[:, :b] = 0
+        peaks[:, -b:] = 0
+        flat = np.flatnonzero(peaks)
+        if flat.size == 0:
+            continue
+        ys, xs = np.divmod(flat, shp[1])
+        # sub-pixel peak in the response (refined later on the full image)
+        c = doh[ys, xs].astype(np.float64)
+        xp, xm = doh[ys, xs + 1], doh[ys, xs - 1]  # peaks are >= 1 px inside the level
+        yp, ym = doh[ys + 1, xs], doh[ys - 1, xs]
+        dx = np.clip(0.5 * (xp - xm) / np.maximum(2 * c - xp - xm, 1e-12), -0.5, 0.5)
+        dy = np.clip(0.5 * (yp - ym) / np.maximum(2 * c - yp - ym, 1e-12), -0.5, 0.5)
+        # peak value of the fitted parabolas (a sample up to half a level px off the peak
+        # under-reads it, which would bias scale selection towards finer levels)
+        c = c + 0.25 * ((xp - xm) * dx + (yp - ym) * dy)
+        x_full, y_full = (xs + dx + 0.5) * fx - 0.5, (ys + dy + 0.5) * fy - 0.5
+        lo, hi = sample(i_s - 1, x_full, y_full), sample(i_s + 1, x_full, y_full)
+        keep = (c >= lo) & (c >= hi)
+        if not keep.any():
+            continue
+        c, lo, hi, x_full, y_full, ys, xs = (a[keep] for a in (c, lo, hi, x_full, y_full, ys, xs))
+        # continuous scale: parabola through the three responses on the log-sigma axis (the sqrt(2)
+        # grid is too coarse to place the background ring just outside the marker)
+        curv = lo - 2 * c + hi
+        inner = np.isfinite(lo) & np.isfinite(hi) & (curv < 0)
+        delta = np.zeros(len(c))
+        delta[inner] = np.clip(0.5 * (lo[inner] - hi[inner]) / curv[inner], -0.5, 0.5)
+        step_dn = log_s[i_s] - log_s[i_s - 1] if i_s > 0 else 0.5
+        step_up = log_s[i_s + 1] - log_s[i_s] if i_s + 1 < len(sig) else 0.5
+        s_cont = 2.0 ** (log_s[i_s] + delta * np.where(delta < 0, step_dn, step_up))
+        a, d, e = (v[ys, xs].astype(np.float64) for v in (lxx, lyy, lxy))
+        tr, det = a + d, a * d - e * e
+        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+        l1, l2 = np.abs(tr / 2 - disc), np.abs(tr / 2 + disc)
+        elong = np.maximum(l1, l2) / np.maximum(np.minimum(l1, l2), 1e-12)
+        s_group = 2.0 ** (np.rint(8 * np.log2(s_cont)) / 8)
+        out.append(np.column_stack([x_full, y_full, s_cont, c, elong, s_group]))
     if not out:
-        return np.empty((0, 5))
-    cand = np.concatenate(out)
-    # continuous scale: parabola through the responses at the two neighbouring scales (log-sigma
-    # axis) at the same place; the discrete grid is sqrt(2) apart, too coarse to size the ring
-    # outside the marker
-    i_s = cand[:, 2].astype(np.intp)
-    resp = np.full((len(cand), 3), np.nan)
-    resp[:, 1] = cand[:, 3]
-    for side, col in ((-1, 0), (1, 2)):
-        for k in np.unique(i_s):
-            kk = k + side
-            if not 0 <= kk < len(maps) or maps[kk] is None:
-                continue
-            doh, fx, fy = maps[kk]
-            g = np.nonzero(i_s == k)[0]
-            u = np.clip(np.rint((cand[g, 0] + 0.5) / fx - 0.5).astype(np.intp), 0, doh.shape[1] - 1)
-            v = np.clip(np.rint((cand[g, 1] + 0.5) / fy - 0.5).astype(np.intp), 0, doh.shape[0] - 1)
-            resp[g, col] = doh[v, u]
-    log_s = np.log2(sig)
-    step = np.diff(log_s)
-    lo = np.where(np.isnan(resp[:, 0]), -np.inf, resp[:, 0])
-    hi = np.where(np.isnan(resp[:, 2]), -np.inf, resp[:, 2])
-    peak = (resp[:, 1] >= lo) & (resp[:, 1] >= hi) & np.isfinite(lo) & np.isfinite(hi)
-    curv = np.where(peak, lo - 2 * resp[:, 1] + hi, -1.0)
-    delta = np.where(peak & (curv < 0), np.clip(0.5 * (lo - hi) / np.minimum(curv, -1e-12), -0.5, 0.5), 0.0)
-    st = np.where(delta < 0, np.r_[step, 0.5][np.maximum(i_s - 1, 0)] if len(step) else 0.5,
-                  np.r_[step, 0.5][np.minimum(i_s, len(step))] if len(step) else 0.5)
-    s_cont = 2.0 ** (log_s[i_s] + delta * st)
-    # quantised to 1/16 octave so that blobs of one size share pixel offsets when measured
-    cand[:, 2] = 2.0 ** (np.rint(16 * np.log2(s_cont)) / 16)
-    return cand
+        return np.empty((0, 6))
+    return np.concatenate(out)
 
 
 def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
@@ -366,7 +366,7 @@ def _measure_group(padded: np.ndarray, sat_padded: np.ndarray, pad: int, cand: n
     core are then laid out about the rounded refined centre (<= 0.71 px off), so every candidate of a
     group gathers the same offsets: only the pixels actually used are read.
     """
-    r_blob = float(np.sqrt(2) * cand[0, 2])
+    r_blob = float(np.sqrt(2) * cand[0, 5])
     rox, roy, sector, starts, wox, woy, cox, coy = _group_offsets(r_blob, params)
 
     def ring_median(cx, cy):
@@ -428,8 +428,8 @@ def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarra
     np.greater_equal(grey_u8, params.saturation_level, out=sat_padded[pad:-pad, pad:-pad])
     xy = np.empty((len(cand), 2))
     contrast, spread, sat, core_sat = (np.empty(len(cand)) for _ in range(4))
-    for s in np.unique(cand[:, 2]):
-        g = np.nonzero(cand[:, 2] == s)[0]
+    for s in np.unique(cand[:, 5]):
+        g = np.nonzero(cand[:, 5] == s)[0]
         xy[g], contrast[g], spread[g], sat[g], core_sat[g] = _measure_group(padded, sat_padded, pad, cand[g], params)
     return xy, contrast, spread, sat, core_sat
 
