@@ -12,16 +12,18 @@ Model (built in code with :class:`mujoco.MjSpec` from a :class:`~pipeline.design
   ``gel`` (everything below, the gel's E and ν), Saint Venant–Kirchhoff, MuJoCo's discrete
   integrator with the CG solver. Vertices on the bottom (bonded to the acrylic) and on the lateral
   boundary (clamped by the rigid mount) are fixed to the world body.
-* Domed designs: the mesh is warped vertically by ``design.dome_z_mm`` (full at the top, zero at
-  the window), so the outer surface is the dome; physics is otherwise identical.
+* Domed designs: the mesh is shifted vertically by ``design.dome_z_mm`` (fully in the skin layer,
+  tapering linearly to zero at the window), so the skin is the dome of constant vertical
+  thickness T; rest markers are exact, the physics (materials, contact, pins) is unchanged.
 * Contact: every free vertex of the outer surface carries a small frictionless sphere (radius
   ``CONTACT_RADIUS_MM``) whose outermost point is the vertex; the indenter is a height field of its
   true shape (:mod:`twin.indenters`) on a mocap body. Flex elements themselves do not collide.
 * Mass scaling (:mod:`twin.materials`): ``m_i = MASS_SCALE · dt² · K_ii``; gravity off.
 * Pins: each marker's pin base is the skin-underside point at the rest marker's x-y, embedded with
   barycentric weights in the skin tetrahedron that contains it. The pin is stiff (E_pin ≫ E_gel)
-  and rotates with the skin element it grows from: ``axis = R · (0, 0, -1)`` with ``R`` the polar
-  rotation of that element's deformation gradient; ``marker = base + H · axis``. At rest this is
+  and rotates with the skin it grows from: ``axis = R · (0, 0, -1)`` with ``R`` the polar rotation
+  of the volume-averaged deformation gradient of the skin elements within one fine cell of the
+  base; ``marker = base + H · axis``. At rest this is
   exactly ``design.rest_markers_mm()``.
 
 MuJoCo's world frame is the sensor frame rotated 180° about x (the sensor looks down at the
@@ -51,6 +53,7 @@ SETTLE_TOL_MM = 5e-3         # quasi-static: max vertex motion per step (mm) bel
 SETTLE_CONSECUTIVE = 3       # ... for this many consecutive steps
 SETTLE_MAX_STEPS = 300
 MAX_INCREMENT_MM = 0.05      # largest indenter move per physics step (keeps contact penetration << 0.2 mm cells)
+PIN_ROTATION_RADIUS_FACTOR = 1.0  # pin rotation averaged over skin elements within 1 cell of its base
 DEPTH_MARGIN_MM = 1.0        # markers must stay this far above the window: depth <= G - H - margin
 _FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
 
@@ -155,7 +158,8 @@ def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
     top_faces = np.vstack([np.column_stack([a, b, c_]), np.column_stack([a, c_, d])])
     if design.pattern.dome_height_mm > 0:
         zb = -(T + G)
-        nodes[:, 2] += design.dome_z_mm(nodes[:, :2]) * (nodes[:, 2] - zb) / (0.0 - zb)
+        frac = np.clip((nodes[:, 2] - zb) / (-T - zb), 0.0, 1.0)   # 1 in the skin layer, 0 at the window
+        nodes[:, 2] += design.dome_z_mm(nodes[:, :2]) * frac
     return _Mesh(nodes, tets_skin, tets_gel, pinned, top, top_faces)
 
 
@@ -299,7 +303,27 @@ class SkinSim:
             raise PhysicsError(f"design {d.name}: a pin base lies outside the skin mesh")
         self._pin_tet = m.tets_skin[k]                        # (N, 4)
         self._pin_w = bary[np.arange(len(k)), k]              # (N, 4)
-        self._pin_Bi = Bi[k]                                  # (N, 3, 3) rest Dm^-1
+        # pin rotation: volume-weighted mean deformation gradient of the skin tetrahedra whose
+        # centroids lie within PIN_ROTATION_RADIUS of the base (x-y), a symmetric neighbourhood
+        from scipy.sparse import csr_matrix
+        from scipy.spatial import cKDTree
+
+        cent = X.mean(axis=1)
+        rad = max(PIN_ROTATION_RADIUS_FACTOR * self.mesh_spec.fine_mm, d.pins.diameter_mm)
+        lists = cKDTree(cent[:, :2]).query_ball_point(base[:, :2], rad)
+        rows, cols, vals = [], [], []
+        for i, lst in enumerate(lists):
+            lst = [j for j in lst if abs(cent[j, 2] - base[i, 2]) <= d.skin.thickness_mm] or [int(k[i])]
+            w = vol[lst] / vol[lst].sum()
+            rows += [i] * len(lst)
+            cols += list(lst)
+            vals += list(w)
+        used = np.unique(cols)
+        remap = -np.ones(len(X), int)
+        remap[used] = np.arange(len(used))
+        self._rot_tets = m.tets_skin[used]
+        self._rot_Bi = Bi[used]
+        self._rot_avg = csr_matrix((vals, (rows, remap[cols])), shape=(len(base), len(used)))
         self._rest_axis = np.array([0.0, 0.0, -1.0])
 
     # ----- state --------------------------------------------------------------------------
@@ -363,8 +387,9 @@ class SkinSim:
         X = self.nodes_mm()
         P = X[self._pin_tet]                                            # (N, 4, 3)
         base = np.einsum("nk,nkj->nj", self._pin_w, P)
-        Ds = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]], axis=2)
-        F = Ds @ self._pin_Bi
+        Q = X[self._rot_tets]
+        Ds = np.stack([Q[:, 1] - Q[:, 0], Q[:, 2] - Q[:, 0], Q[:, 3] - Q[:, 0]], axis=2)
+        F = (self._rot_avg @ (Ds @ self._rot_Bi).reshape(len(Q), 9)).reshape(-1, 3, 3)
         U, _, Vt = np.linalg.svd(F)
         Rm = U @ Vt
         flip = np.linalg.det(Rm) < 0
@@ -406,13 +431,13 @@ class SkinSim:
         return self.indenter_z_at(X[:, :2]) - X[:, 2]
 
     def contact_force_n(self) -> float:
-        """Total normal force between skin and indenter (N)."""
-        f6 = np.zeros(6)
-        total = 0.0
-        for i in range(self.data.ncon):
-            self._mj.mj_contactForce(self.model, self.data, i, f6)
-            total += f6[0]
-        return float(total)
+        """Total force the indenter exerts on the skin along the press direction (N).
+
+        Summed from the constraint forces on the vertex DOFs (the only constraints are the
+        skin–indenter contacts), along world +z = sensor −z.
+        """
+        qz = self.data.qfrc_constraint[2::3] if len(self._free) else np.zeros(0)
+        return float(np.sum(qz))
 
     def truth(self) -> Truth:
         """Truth of the current state (sensor frame, mm)."""

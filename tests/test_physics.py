@@ -1,0 +1,147 @@
+"""MuJoCo skin model: compiles for every design, rest markers exact, contact fidelity, pins.
+
+Each test states its tolerance; the model is run at the resolutions the twin uses.
+"""
+
+import numpy as np
+import pytest
+
+from pipeline.design import list_designs, load_design
+from twin.indenters import make_indenter
+from twin.physics import MeshSpec, PhysicsError, SkinSim, max_depth_mm
+from twin import robot
+
+pytestmark = pytest.mark.physics
+
+COARSE = MeshSpec(fine_mm=2.5)
+GAP_TOL_MM = 0.1           # the twin's conformity goal: skin within 0.1 mm of a touching indenter
+PENETRATION_TOL_MM = 0.05  # contact spheres may sink this much into the height field (stiff contact)
+
+
+def _press(design, ind, depth, mesh=MeshSpec()):
+    sim = SkinSim(design, ind, mesh=mesh)
+    (_, stats, truth), = robot.execute(sim, robot.press_motion(depth))
+    assert sim.warnings() == {}
+    return sim, stats, truth
+
+
+@pytest.mark.parametrize("name", list_designs())
+def test_every_design_compiles_steps_and_has_exact_rest_markers(name):
+    d = load_design(name)
+    sim = SkinSim(d, make_indenter("flat"), mesh=COARSE)
+    xyz, axis = sim.markers()
+    assert np.abs(xyz - d.rest_markers_mm()).max() < 1e-9
+    assert np.allclose(axis, [0, 0, -1])
+    sim.step(5)
+    assert sim.warnings() == {}
+    top = sim.skin_vertices_mm()
+    assert np.allclose(top[:, 2], d.dome_z_mm(top[:, :2]), atol=1e-6)   # rest outer surface (flat or dome)
+    xyz2, _ = sim.markers()
+    assert np.abs(xyz2 - xyz).max() < 1e-6                               # nothing moves without contact
+
+
+def test_flat_plate_force_between_layer_estimates():
+    """Plate over the whole disc pressed δ = 0.5 mm into the gel (bonded bottom, clamped rim).
+
+    Fully confined layer: F_c = M A δ / G with M = E (1-ν) / ((1+ν)(1-2ν)) = 17.1 E for ν = 0.49; the
+    uniform confined field is admissible, so the FE force cannot exceed it (energy minimum). A
+    free-slip layer would give E A δ / G = F_c / 17; the clamped rim and a skin 57x stiffer than the
+    gel suppress most bulging, so we require F >= 0.4 F_c.
+    """
+    d = load_design("hexagon127")
+    sim = SkinSim(d, make_indenter("flat"), mesh=MeshSpec(fine_mm=2.0))
+    sim.set_pose(0, 0, -0.1, 0)
+    sim.move_to(0, 0, 0.5, 0)
+    sim.settle()
+    E, nu, G = d.gel.youngs_modulus_mpa, d.gel.poisson_ratio, d.optics.gel_thickness_mm
+    M = E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+    ax = sim.mesh.nodes_mm
+    area = _mesh_area_mm2(sim)
+    f_confined = M * area * 0.5 / G            # MPa * mm^2 = N
+    f = sim.contact_force_n()
+    assert 0.4 * f_confined <= f <= 1.02 * f_confined, (f, f_confined)
+    assert sim.warnings() == {}
+
+
+def _mesh_area_mm2(sim):
+    v = sim.skin_vertices_mm()
+    a, b, c = (v[sim.mesh.top_faces[:, k], :2] for k in range(3))
+    u, w = b - a, c - a
+    return float(0.5 * np.abs(u[:, 0] * w[:, 1] - u[:, 1] * w[:, 0]).sum())
+
+
+def test_wide_gaussian_skin_follows_indenter_and_pins_tilt_with_the_skin():
+    d = load_design("hexagon127")
+    sim, stats, truth = _press(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=50), 5.0)
+    assert stats.converged
+    gap = sim.gap_mm()
+    assert len(gap) > 50
+    assert gap.max() <= GAP_TOL_MM and gap.min() >= -PENETRATION_TOL_MM
+    # pins: tilted on the flank, upright at the apex, and aligned with the local skin normal
+    xyz, axis = truth.marker_xyz_mm, truth.marker_axis
+    rest = d.rest_markers_mm()
+    r = np.hypot(rest[:, 0], rest[:, 1])
+    tilt = np.degrees(np.arccos(np.clip(-axis[:, 2], -1, 1)))
+    assert tilt[np.argmin(r)] < 1.0
+    flank = (r > 5.0) & (r < 9.0)
+    assert np.median(tilt[flank]) > 5.0
+    normals = _vertex_normals(truth.skin_vertices_mm, truth.skin_faces)
+    base = xyz - d.pins.height_mm * axis
+    nearest = np.argmin(np.linalg.norm(truth.skin_vertices_mm[None, :, :2] - base[flank, None, :2], axis=2), axis=1)
+    cosang = np.sum(-axis[flank] * normals[nearest], axis=1)
+    assert np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))) < 0.5 * np.median(tilt[flank])
+    # pins lean outward (the skin normal on the flank of a dimple points toward the axis from below)
+    radial = rest[flank, :2] / r[flank, None]
+    assert np.all(np.sum(axis[flank, :2] * radial, axis=1) < 0) or np.all(np.sum(axis[flank, :2] * radial, axis=1) > 0)
+
+
+def _vertex_normals(v, f):
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    out = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(out, f[:, k], n)
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    return out * np.sign(out[:, 2:3])          # outward (+z)
+
+
+def test_sine_valleys_keep_the_skin_out():
+    """A convex-hull collider would flatten the valleys to the crest level; the height field must not."""
+    d = load_design("hexagon127")
+    w = 2 * np.pi / 15
+    sim, _, truth = _press(d, make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=w), 4.0)
+    v = truth.skin_vertices_mm
+    near = lambda x0: v[np.argmin(np.hypot(v[:, 0] - x0, v[:, 1]))]
+    crest, valley = near(np.pi / (2 * w)), near(-np.pi / (2 * w))
+    assert crest[2] == pytest.approx(-4.0, abs=GAP_TOL_MM)
+    # the indenter surface above the valley vertex is at +1 mm: the skin there is free (pulled in by
+    # its neighbours, not pushed); a convex-hull collider would hold it at the crest level, -4 mm
+    assert valley[2] > crest[2] + 0.3
+    assert sim.indenter_z_at(valley[None, :2])[0] - valley[2] > 1.0
+
+
+@pytest.mark.xfail(reason="KNOWN DEFECT: on steep flanks (slope ~1) some vertex spheres sink through MuJoCo's "
+                          "per-prism height-field collision (measured 26% of touching vertices, up to 2.5 mm)",
+                   strict=True)
+def test_sine_flanks_do_not_penetrate():
+    d = load_design("hexagon127")
+    sim, _, _ = _press(d, make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=2 * np.pi / 15), 4.0)
+    assert sim.gap_mm().min() >= -PENETRATION_TOL_MM
+
+
+@pytest.mark.slow
+def test_thicker_skin_conforms_less_to_a_sharp_gaussian():
+    ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=5 / 3)
+    peak = {}
+    for name in ("hexagon127_skin050", "hexagon127_skin150"):
+        sim, _, truth = _press(load_design(name), ind, 3.0)
+        v = truth.skin_vertices_mm
+        peak[name] = v[np.argmin(np.hypot(v[:, 0], v[:, 1])), 2]
+    # the thin skin wraps the tip (peak pushed to ≈ -3 mm); the thick skin bridges it (shallower)
+    assert peak["hexagon127_skin050"] < peak["hexagon127_skin150"] - 0.05, peak
+
+
+def test_depth_limit_is_enforced():
+    d = load_design("hexagon127")
+    sim = SkinSim(d, make_indenter("flat"), mesh=COARSE)
+    with pytest.raises(PhysicsError, match="exceeds"):
+        robot.execute(sim, robot.press_motion(max_depth_mm(d) + 0.5))

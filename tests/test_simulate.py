@@ -1,0 +1,84 @@
+"""simulate API and CLI: truth files, metadata, depth limits and user-facing errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.design import load_design
+from pipeline.types import DataError, HeightMap
+from stereotactip.cli import main
+from twin.indenters import make_indenter
+from twin.physics import MeshSpec, PhysicsError, max_depth_mm
+from twin.simulate import press_truth
+from twin.truth import Truth
+
+
+def _truth():
+    ax = np.linspace(-1, 1, 5)
+    return Truth(np.arange(3), np.zeros((3, 3)), np.tile([0, 0, -1.0], (3, 1)), np.zeros((4, 3)),
+                 np.array([[0, 1, 2], [0, 2, 3]]), HeightMap(ax, ax, np.full((5, 5), np.nan)), np.array([0, 0, -1, 0.0]))
+
+
+def test_truth_round_trip_and_validation(tmp_path):
+    t = _truth()
+    t.save_npz(tmp_path / "t.npz")
+    u = Truth.load_npz(tmp_path / "t.npz")
+    for f in ("marker_ids", "marker_xyz_mm", "marker_axis", "skin_vertices_mm", "skin_faces", "robot_pose"):
+        assert np.array_equal(getattr(t, f), getattr(u, f))
+    assert np.array_equal(np.isnan(u.indenter.z_mm), np.isnan(t.indenter.z_mm))
+    with pytest.raises(DataError, match="marker_axis"):
+        Truth(np.arange(1), np.zeros((1, 3)), np.array([[0, 0, -2.0]]), np.zeros((3, 3)), np.array([[0, 1, 2]]),
+              t.indenter, t.robot_pose)
+    with pytest.raises(DataError, match="does not exist"):
+        Truth.load_npz(tmp_path / "missing.npz")
+
+
+@pytest.mark.physics
+def test_press_truth_frames_at_increasing_depth():
+    d = load_design("hexagon127")
+    run = press_truth(d, make_indenter("gaussian", sigma2_mm2=50), 2.0, n_frames=2, mesh=MeshSpec(fine_mm=2.5))
+    assert len(run) == 2 and run.meta["mujoco_warnings"] == {}
+    assert [t.robot_pose[2] for t in run] == [-1.0, -2.0]
+    assert run.meta["timestamps_s"] == [2.0, 3.0]                 # 1 mm approach + depth at 1 mm/s
+    centre = [t.marker_xyz_mm[np.argmin(np.hypot(*d.rest_markers_mm()[:, :2].T))] for t in run]
+    rest_z = -d.marker_depth_mm
+    assert rest_z > centre[0][2] > centre[1][2]                     # the centre marker goes deeper
+    assert np.array_equal(run[0].marker_ids, np.arange(d.marker_count))
+
+
+def test_depth_limits():
+    d = load_design("hexagon127")
+    for bad in (-1.0, max_depth_mm(d) + 0.1, float("nan")):
+        with pytest.raises(PhysicsError, match="depth"):
+            press_truth(d, make_indenter("flat"), bad)
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["--design", "nope"], "unknown design"),
+    (["--indenter", "cube"], "unknown indenter"),
+    (["--param", "radius=2"], "unknown parameter"),
+    (["--param", "sigma2=-3"], "sigma2_mm2"),
+    (["--depth", "20"], "depth"),
+])
+def test_cli_errors(tmp_path, capsys, argv, msg):
+    assert main(["simulate", "--out", str(tmp_path / "o"), *argv]) == 2
+    assert msg in capsys.readouterr().err
+
+
+@pytest.mark.physics
+@pytest.mark.render
+def test_cli_simulate_writes_frames_truth_calibration(tmp_path, monkeypatch):
+    monkeypatch.setenv("PYOPENGL_PLATFORM", "egl")
+    out = tmp_path / "run"
+    assert main(["simulate", "--design", "hexagon127", "--indenter", "gaussian", "--param", "sigma2=50",
+                 "--depth", "1", "--out", str(out)]) == 0
+    import cv2
+
+    img = cv2.imread(str(out / "frame_0000.png"))
+    assert img.shape == (480, 1280, 3)
+    t = Truth.load_npz(out / "truth_0000.npz")
+    assert t.robot_pose[2] == -1.0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["indenter"] == "gaussian" and meta["params"]["sigma2_mm2"] == 50.0 and "settle" in meta
+    assert (out / "calib.yaml").is_file() and (out / "preview.png").is_file()
