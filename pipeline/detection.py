@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pipeline.types import Blobs, DataError
 
@@ -173,18 +174,20 @@ def _half(img: np.ndarray, name: str) -> np.ndarray:
 def _level(grey_f: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, float]:
     """Half-octave pyramid level ``j``: the image area-reduced ~``sqrt(2)**j`` times.
 
-    Even levels are exact 2x2 means of the level two below; odd level 1 is an INTER_AREA resize of
-    the full image by 1/sqrt(2). Returns (image, fx, fy): level pixel ``(i_x, i_y)`` is centred at full
-    pixel ``((i_x + 0.5) fx - 0.5, (i_y + 0.5) fy - 0.5)``.
+    Level ``j`` is the exact 2x2 mean of level ``j - 2``, except the odd bases: level 3 is an
+    INTER_AREA resize of level 2 by 1/sqrt(2) (level 1, used only for scales below ~1.4 px, one of the
+    full image). Returns (image, fx, fy): level pixel ``(i_x, i_y)`` is centred at full pixel
+    ``((i_x + 0.5) fx - 0.5, (i_y + 0.5) fy - 0.5)``.
     """
     if j not in cache:
         if j == 0:
             cache[0] = (grey_f, 1.0, 1.0)
-        elif j == 1:
-            h, w = grey_f.shape
+        elif j in (1, 3):
+            prev, px, py = _level(grey_f, j - 1 if j == 1 else 2, cache)
+            h, w = prev.shape
             w1, h1 = max(1, int(round(w / math.sqrt(2)))), max(1, int(round(h / math.sqrt(2))))
-            img = cv2.resize(grey_f, (w1, h1), dst=_Workspace.get("lvl1", (h1, w1)), interpolation=cv2.INTER_AREA)
-            cache[1] = (img, w / w1, h / h1)
+            img = cv2.resize(prev, (w1, h1), dst=_Workspace.get(f"lvl{j}", (h1, w1)), interpolation=cv2.INTER_AREA)
+            cache[j] = (img, px * w / w1, py * h / h1)
         else:
             prev, fx, fy = _level(grey_f, j - 2, cache)
             if min(prev.shape) < 10:
@@ -200,6 +203,11 @@ def _level(grey_f: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, 
 #: ~1.4 level px in radius, and the work is a fraction of the full-resolution scale space. Centres are
 #: refined afterwards on the full-resolution image.
 _LEVEL_SIGMA = 0.95
+#: Scales that would run on the sqrt(2) level run on the half-resolution level instead when they are
+#: still this many level px there (the default 1.4 px scale: 0.7 px, slightly under-read by the
+#: 3-tap differences, which only nudges the sizes of the smallest markers up), which saves the full-
+#: resolution resize, the most expensive single operation of the scale space.
+_MIN_HALF_SIGMA = 0.69
 
 
 def _candidates(grey_f: np.ndarray, params: DetectionParams):
@@ -216,6 +224,7 @@ def _candidates(grey_f: np.ndarray, params: DetectionParams):
     sig = np.asarray(sorted(params.sigmas_px), dtype=np.float64)
     log_s = np.log2(sig)
     level_of = np.floor(2 * np.log2(np.maximum(sig / _LEVEL_SIGMA, 1.0))).astype(int)
+    level_of[(level_of == 1) & (sig / 2 >= _MIN_HALF_SIGMA)] = 2
     cache: dict = {}
     maps: list = []  # per scale: (doh, lxx, lyy, lxy, fx, fy) or None
     for i_s, (j, s_full) in enumerate(zip(level_of, sig)):
@@ -296,8 +305,6 @@ def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
     """Cross-scale NMS: drop a candidate when a stronger one lies within ``max(min_sep, r_i, r_j)``."""
     if len(cand) < 2:
         return cand
-    from scipy.spatial import cKDTree
-
     radius = np.maximum(min_sep, np.sqrt(2) * cand[:, 2])
     pairs = cKDTree(cand[:, :2]).query_pairs(float(radius.max()), output_type="ndarray")
     if len(pairs) == 0:
@@ -327,27 +334,36 @@ def _patch_offsets(rmax: int) -> tuple[np.ndarray, np.ndarray]:
     return ox.ravel(), oy.ravel()
 
 
-def _group_offsets(r_blob: float, params: DetectionParams):
-    """Pixel offsets (relative to a rounded centre) of the ring, its sectors, the centroid window and
-    the core for blobs of radius ``r_blob``; ring offsets are sorted by sector. Cached per radius."""
-    key = (r_blob, params.centroid_radius_factor)
+def _group_geometry(r_blob: float, params: DetectionParams) -> tuple[float, float, float, int]:
+    """(ring inner radius, ring outer radius, centroid window radius, max offset) for radius ``r_blob``."""
+    r_win = params.centroid_radius_factor * r_blob + 0.5
+    r_in, r_out = _RING_IN * r_blob + 1.0, _RING_IN * r_blob + 2.5
+    return r_in, r_out, r_win, int(math.ceil(max(r_out, r_win)))
+
+
+def _group_offsets(r_blob: float, params: DetectionParams, row: int):
+    """Flat pixel offsets (relative to a rounded centre, image rows ``row`` long) of the ring (sorted
+    by sector, with the sector starts), the centroid window (with its x, y offsets) and the core for
+    blobs of radius ``r_blob``. Cached per (radius, row length)."""
+    key = (r_blob, params.centroid_radius_factor, row)
     hit = _OFFSETS.get(key)
     if hit is not None:
         return hit
-    r_win = params.centroid_radius_factor * r_blob + 0.5
-    r_in, r_out = _RING_IN * r_blob + 1.0, _RING_IN * r_blob + 2.5
-    rmax = int(math.ceil(max(r_out, r_win)))
+    r_in, r_out, r_win, rmax = _group_geometry(r_blob, params)
     ox, oy = _patch_offsets(rmax)
     d2 = ox * ox + oy * oy
     ring_sel = (d2 >= r_in * r_in) & (d2 <= r_out * r_out)
     rox, roy = ox[ring_sel], oy[ring_sel]
     sector = (np.floor((np.arctan2(roy, rox) + np.pi) * (_SECTORS / (2 * np.pi))).astype(np.intp)) % _SECTORS
     o = np.argsort(sector, kind="stable")
-    rox, roy, sector = rox[o], roy[o], sector[o]
-    starts = np.searchsorted(sector, np.arange(_SECTORS))
+    ring = roy[o] * row + rox[o]
+    starts = np.searchsorted(sector[o], np.arange(_SECTORS))
     win_sel = d2 <= r_win * r_win
+    wox, woy = ox[win_sel].astype(np.float32), oy[win_sel].astype(np.float32)
+    win = oy[win_sel] * row + ox[win_sel]
     core_sel = d2 <= (0.5 * r_blob + 0.5) ** 2
-    hit = (rox, roy, sector, starts, ox[win_sel], oy[win_sel], ox[core_sel], oy[core_sel])
+    core = oy[core_sel] * row + ox[core_sel]
+    hit = (ring, starts, win, np.column_stack([wox, woy]), core)
     if len(_OFFSETS) > 256:
         _OFFSETS.clear()
     _OFFSETS[key] = hit
@@ -357,51 +373,67 @@ def _group_offsets(r_blob: float, params: DetectionParams):
 _OFFSETS: dict[tuple, tuple] = {}
 
 
-def _measure_group(padded: np.ndarray, sat_padded: np.ndarray, pad: int, cand: np.ndarray,
-                   params: DetectionParams):
-    """Centroid + photometry for candidates of ONE scale (same pixel offsets). See _refine_and_measure.
+def _median_rows(vals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Row medians of ``vals`` over ``mask`` (NaN for empty rows); partition when all are valid."""
+    n = vals.shape[1]
+    if n and mask.all():
+        k = sorted({(n - 1) // 2, n // 2})
+        part = np.partition(vals, k, axis=1)
+        return 0.5 * (part[:, k[0]].astype(np.float64) + part[:, k[-1]])
+    return _row_median(vals, mask)
 
-    The centroid is iterated first (background = ring median about the candidate, robust to the
-    candidate being a pixel or two off, as on the coarse pyramid levels); rings, sectors and the
-    core are then laid out about the rounded refined centre (<= 0.71 px off), so every candidate of a
-    group gathers the same offsets: only the pixels actually used are read.
+
+def _measure_group(flat: np.ndarray, row: int, pad: int, cand: np.ndarray, params: DetectionParams,
+                   sat_thr: float):
+    """Centroid + photometry for candidates of ONE measuring scale. See _refine_and_measure.
+
+    ``flat`` is the padded [0, 1] image raveled (-1 outside the image), rows ``row`` long. The centroid
+    is iterated first (background = ring median about the candidate, robust to the candidate being a
+    pixel or two off, as on the coarse pyramid levels); ring, sectors and core are then laid out about
+    the rounded refined centre (<= 0.71 px off), so every candidate of a group gathers the same flat
+    offsets (one ``np.take`` each): only the pixels actually used are read.
     """
     r_blob = float(np.sqrt(2) * cand[0, 5])
-    rox, roy, sector, starts, wox, woy, cox, coy = _group_offsets(r_blob, params)
+    ring, starts, win, wxy, core = _group_offsets(r_blob, params, row)
 
-    def ring_median(cx, cy):
-        rv = padded[cy[:, None] + roy, cx[:, None] + rox]
-        inside = rv >= 0
-        return rv, inside, np.nan_to_num(_row_median(rv, inside), nan=0.0)
+    def base(xy_):
+        ix = np.rint(xy_[:, 0]).astype(np.intp)
+        iy = np.rint(xy_[:, 1]).astype(np.intp)
+        return ix, iy, (iy + pad) * row + (ix + pad)
 
-    ix = np.rint(cand[:, 0]).astype(np.intp) + pad
-    iy = np.rint(cand[:, 1]).astype(np.intp) + pad
-    bg = ring_median(ix, iy)[2]
+    _, _, b0 = base(cand)
+    rv = np.take(flat, b0[:, None] + ring)
+    bg = np.nan_to_num(_median_rows(rv, rv >= 0), nan=0.0).astype(np.float32)
     xy = cand[:, :2].copy()
+    lim = 0.5 * r_blob + 1.0
     for _ in range(max(1, params.centroid_iterations)):
-        cx, cy = np.rint(xy[:, 0]).astype(np.intp), np.rint(xy[:, 1]).astype(np.intp)
-        v = padded[cy[:, None] + pad + woy, cx[:, None] + pad + wox]
-        wts = np.maximum(v - bg[:, None], 0.0)  # outside the image: v = -1 -> weight 0
-        tot = wts.sum(1)
+        cx, cy, b = base(xy)
+        v = np.take(flat, b[:, None] + win)
+        wts = np.maximum(v - bg[:, None], np.float32(0.0))  # outside the image: v = -1 -> weight 0
+        tot = wts.sum(1, dtype=np.float64)
         ok = tot > 0
+        mom = (wts @ wxy).astype(np.float64)
         new = xy.copy()
-        new[ok, 0] = cx[ok] + (wts[ok] @ wox) / tot[ok]
-        new[ok, 1] = cy[ok] + (wts[ok] @ woy) / tot[ok]
+        new[ok, 0] = cx[ok] + mom[ok, 0] / tot[ok]
+        new[ok, 1] = cy[ok] + mom[ok, 1] / tot[ok]
         # a centroid that runs away (neighbour or plateau in the window) keeps the DoH peak
-        moved = np.hypot(*(new - cand[:, :2]).T)
-        xy = np.where((moved <= 0.5 * r_blob + 1.0)[:, None], new, cand[:, :2])
+        moved = np.hypot(new[:, 0] - cand[:, 0], new[:, 1] - cand[:, 1])
+        xy = np.where((moved <= lim)[:, None], new, cand[:, :2])
 
     # photometry about the refined centre
-    ix = np.rint(xy[:, 0]).astype(np.intp) + pad
-    iy = np.rint(xy[:, 1]).astype(np.intp) + pad
-    rv, inside, bg = ring_median(ix, iy)
+    _, _, b = base(xy)
+    rv = np.take(flat, b[:, None] + ring)
+    inside = rv >= 0
+    n_in = inside.sum(1)
+    bg = np.nan_to_num(_median_rows(rv, inside), nan=0.0)
+    rv0 = np.where(inside, rv, np.float32(0.0))
     cnt = np.add.reduceat(inside.astype(np.int32), starts, axis=1)
-    tot = np.add.reduceat(np.where(inside, rv, 0.0), starts, axis=1)
-    mean = np.where(cnt > 0, tot / np.maximum(cnt, 1), -np.inf)
-    ring_hi = mean.max(axis=1)
-    sat = (inside & sat_padded[iy[:, None] + roy, ix[:, None] + rox]).sum(1) / np.maximum(inside.sum(1), 1)
-    peak = padded[iy[:, None] + coy, ix[:, None] + cox].max(axis=1)
-    core_sat = (sat_padded[iy[:, None] + coy, ix[:, None] + cox]).mean(axis=1)
+    tot = np.add.reduceat(rv0, starts, axis=1, dtype=np.float64)
+    ring_hi = np.where(cnt > 0, tot / np.maximum(cnt, 1), -np.inf).max(axis=1)
+    sat = (rv >= sat_thr).sum(1) / np.maximum(n_in, 1)
+    cv = np.take(flat, b[:, None] + core)
+    peak = cv.max(axis=1).astype(np.float64)
+    core_sat = (cv >= sat_thr).mean(axis=1)
     return xy, peak - bg, ring_hi - bg, sat, core_sat
 
 
@@ -411,11 +443,11 @@ def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarra
     Returns ``xy`` (N, 2) refined centres, ``contrast`` (N,) peak minus ring median, ``ring_spread``
     (N,) brightest ring sector minus ring median, ``sat`` (N,) saturated fraction of the ring,
     ``core_sat`` (N,) saturated fraction of the blob core.
-    The ring spans ``1.25 r + 1 .. 1.25 r + 2.5`` px (r = sqrt(2) sigma, which underestimates the
-    radius by up to one scale step): just outside the marker edge and,
-    on the densest real frames (r 5.6 px, pitch 16.8 px), inside the dark gap between markers.
+    The ring spans ``1.25 r + 1 .. 1.25 r + 2.5`` px (r = sqrt(2) sigma with the continuous scale):
+    just outside the marker edge and, on the densest real frames (r ~4.7 px, pitch 16.8 px), inside
+    the dark gap between markers.
     """
-    pad = int(math.ceil(np.sqrt(2) * max(params.sigmas_px) * max(params.centroid_radius_factor, 1.0) + 6))
+    pad = max(_group_geometry(float(np.sqrt(2) * cand[:, 5].max()), params)[3], 1) + 2
     h, w = grey_f.shape
     padded = _Workspace.get("padded", (h + 2 * pad, w + 2 * pad))
     padded[:pad].fill(-1.0)
@@ -423,14 +455,15 @@ def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarra
     padded[:, :pad].fill(-1.0)
     padded[:, -pad:].fill(-1.0)
     padded[pad:-pad, pad:-pad] = grey_f
-    sat_padded = _Workspace.get("sat_padded", (h + 2 * pad, w + 2 * pad), np.bool_)
-    sat_padded.fill(False)
-    np.greater_equal(grey_u8, params.saturation_level, out=sat_padded[pad:-pad, pad:-pad])
+    flat = padded.reshape(-1)
+    # grey level k is stored as float32(k / 255): compare half a level below to be exact
+    sat_thr = np.float32((params.saturation_level - 0.5) / 255.0)
     xy = np.empty((len(cand), 2))
     contrast, spread, sat, core_sat = (np.empty(len(cand)) for _ in range(4))
     for s in np.unique(cand[:, 5]):
         g = np.nonzero(cand[:, 5] == s)[0]
-        xy[g], contrast[g], spread[g], sat[g], core_sat[g] = _measure_group(padded, sat_padded, pad, cand[g], params)
+        xy[g], contrast[g], spread[g], sat[g], core_sat[g] = _measure_group(flat, w + 2 * pad, pad, cand[g],
+                                                                            params, sat_thr)
     return xy, contrast, spread, sat, core_sat
 
 
