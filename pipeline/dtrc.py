@@ -125,21 +125,22 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _triangulate(pts: np.ndarray) -> np.ndarray:
-    """Delaunay simplices (M, 3); joggled when exact lattices leave co-circular points unused."""
+def _triangulate(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Delaunay simplices (M, 3) and their neighbours (M, 3) (``neighbors[t, k]``: triangle opposite
+    vertex k, -1 on the hull); joggled when exact lattices leave co-circular points unused."""
+    empty = np.empty((0, 3), np.intp)
     if len(pts) < 3:
-        return np.empty((0, 3), np.intp)
+        return empty, empty
     try:
         tri = Delaunay(pts)
-        simp = tri.simplices
-        if len(np.unique(simp)) < len(pts):
-            simp = Delaunay(pts, qhull_options="QJ Qbb Qc").simplices
+        if np.count_nonzero(np.bincount(tri.simplices.ravel(), minlength=len(pts))) < len(pts):
+            tri = Delaunay(pts, qhull_options="QJ Qbb Qc")
     except QhullError:
         try:
-            simp = Delaunay(pts, qhull_options="QJ Qbb Qc").simplices
+            tri = Delaunay(pts, qhull_options="QJ Qbb Qc")
         except QhullError:
-            return np.empty((0, 3), np.intp)
-    return simp
+            return empty, empty
+    return tri.simplices.astype(np.intp), tri.neighbors.astype(np.intp)
 
 
 def _edge_keys(tris: np.ndarray, n: int):
@@ -148,37 +149,54 @@ def _edge_keys(tris: np.ndarray, n: int):
     return e[:, 0] * n + e[:, 1], e
 
 
-def _boundary(tris: np.ndarray, n: int):
-    """Boundary edge mask per (triangle, edge slot) and boundary edges (B, 2)."""
-    keys, e = _edge_keys(tris, n)
-    _, inv, cnt = np.unique(keys, return_inverse=True, return_counts=True)
-    on_b = cnt[inv] == 1
-    return on_b.reshape(3, -1).T, e[on_b]
+class _Mesh:
+    """A Delaunay triangulation with per-triangle edge slots (slot k = edge (v_k, v_{k+1 mod 3})),
+    the triangle across each slot (-1 on the hull) and the carving criteria, so that the boundary of
+    any subset of triangles (an ``alive`` mask) follows from the neighbour table without sorting."""
 
+    def __init__(self, pts: np.ndarray, idx: np.ndarray, med_edge: float) -> None:
+        simp, nb = _triangulate(pts[idx])
+        self.tris = idx[simp] if len(simp) else simp
+        self.across = nb[:, [2, 0, 1]] if len(nb) else nb  # slot k is opposite vertex k + 2
+        if len(self.tris) == 0:
+            self.sliver = np.empty((0,), bool)
+            self.long = np.empty((0, 3), bool)
+            return
+        a, b, c = pts[self.tris[:, 0]], pts[self.tris[:, 1]], pts[self.tris[:, 2]]
+        ab, bc, ca = b - a, c - b, a - c
+        la, lb, lc = np.hypot(ab[:, 0], ab[:, 1]), np.hypot(bc[:, 0], bc[:, 1]), np.hypot(ca[:, 0], ca[:, 1])
+        area2 = np.abs(ab[:, 0] * (c - a)[:, 1] - ab[:, 1] * (c - a)[:, 0])
+        circum = la * lb * lc / np.maximum(2 * area2, 1e-12)
+        self.sliver = circum > SLIVER_RADIUS_FACTOR * np.minimum(np.minimum(la, lb), lc)
+        self.long = np.column_stack([la, lb, lc]) > LONG_EDGE_FACTOR * med_edge
 
-def _carve(pts: np.ndarray, tris: np.ndarray, med_edge: float) -> np.ndarray:
-    """Remove boundary slivers and long boundary edges until the boundary follows the lattice."""
-    if len(tris) == 0:
-        return tris
-    a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
-    la, lb, lc = (np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1))
-    area2 = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
-    circum = la * lb * lc / np.maximum(2 * area2, 1e-12)
-    sliver = circum > SLIVER_RADIUS_FACTOR * np.minimum(np.minimum(la, lb), lc)
-    elen = np.column_stack([la, lb, lc])
-    alive = np.ones(len(tris), bool)
-    n = len(pts)
-    for _ in range(len(tris)):
-        idx = np.nonzero(alive)[0]
-        if len(idx) == 0:
-            break
-        on_b, _ = _boundary(tris[idx], n)
-        long_b = (on_b & (elen[idx] > LONG_EDGE_FACTOR * med_edge)).any(axis=1)
-        bad = on_b.any(axis=1) & (sliver[idx] | long_b)
-        if not bad.any():
-            break
-        alive[idx[bad]] = False
-    return tris[alive]
+    def on_boundary(self, alive: np.ndarray) -> np.ndarray:
+        """(M, 3) mask: the slot is an edge of exactly one alive triangle (this one)."""
+        nb_alive = np.where(self.across >= 0, alive[self.across], False)
+        return alive[:, None] & ~nb_alive
+
+    def carve(self, alive: np.ndarray) -> np.ndarray:
+        """Remove boundary slivers and long boundary edges until the boundary follows the lattice."""
+        alive = alive.copy()
+        for _ in range(len(alive)):
+            on_b = self.on_boundary(alive)
+            bad = on_b.any(axis=1) & (self.sliver | (on_b & self.long).any(axis=1))
+            if not bad.any():
+                break
+            alive &= ~bad
+        return alive
+
+    def edges(self, alive: np.ndarray, n: int) -> np.ndarray:
+        """Unique undirected edges (E, 2) of the alive triangles, in :func:`mesh_edges` order."""
+        if not alive.any():
+            return np.empty((0, 2), np.int64)
+        t = np.arange(len(alive))[:, None]
+        nb_alive = np.where(self.across >= 0, alive[self.across], False)
+        own = alive[:, None] & (~nb_alive | (t < self.across))  # a shared edge once
+        tt, kk = np.nonzero(own)
+        e = np.column_stack([self.tris[tt, kk], self.tris[tt, (kk + 1) % 3]])
+        e.sort(axis=1)
+        return e[np.argsort(e[:, 0] * n + e[:, 1], kind="stable")].astype(np.int64)
 
 
 def mesh_edges(tris: np.ndarray, n: int) -> np.ndarray:
@@ -191,29 +209,33 @@ def mesh_edges(tris: np.ndarray, n: int) -> np.ndarray:
 
 
 def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float):
-    """Peel up to ``n_rings`` rings. Returns (list of index arrays, outermost first; carved tris)."""
+    """Peel up to ``n_rings`` rings. Returns (list of index arrays, outermost first; carved mesh edges).
+
+    One Delaunay triangulation per view: peeling only marks triangles dead in an ``alive`` mask and
+    reads the boundary from the neighbour table.
+    """
     idx = np.nonzero(active)[0]
+    n = len(pts)
     rings: list[np.ndarray] = []
     if len(idx) == 0:
-        return rings, np.empty((0, 3), np.intp)
-    tris = idx[_triangulate(pts[idx])] if len(idx) >= 3 else np.empty((0, 3), np.intp)
-    tris = _carve(pts, tris, med_edge)
-    carved = tris.copy()
-    remaining = np.zeros(len(pts), bool)
+        return rings, np.empty((0, 2), np.int64)
+    mesh = _Mesh(pts, idx, med_edge)
+    tris = mesh.tris
+    alive = mesh.carve(np.ones(len(tris), bool))
+    edges = mesh.edges(alive, n)
+    remaining = np.zeros(n, bool)
     remaining[idx] = True
-    n = len(pts)
     for _ in range(n_rings):
         rem = np.nonzero(remaining)[0]
         if len(rem) == 0:
             break
         in_tri = np.zeros(n, bool)
-        if len(tris):
-            in_tri[tris.ravel()] = True
-            _, bedges = _boundary(tris, n)
-            ring_mask = np.zeros(n, bool)
-            ring_mask[bedges.ravel()] = True
-        else:
-            ring_mask = np.zeros(n, bool)
+        ring_mask = np.zeros(n, bool)
+        if alive.any():
+            in_tri[tris[alive].ravel()] = True
+            t, k = np.nonzero(mesh.on_boundary(alive))
+            ring_mask[tris[t, k]] = True
+            ring_mask[tris[t, (k + 1) % 3]] = True
         ring_mask |= remaining & ~in_tri  # isolated leftovers (e.g. the centre) belong to this ring
         ring_idx = np.nonzero(ring_mask & remaining)[0]
         if len(ring_idx) == 0:
@@ -222,10 +244,10 @@ def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float):
         ang = np.arctan2(pts[ring_idx, 1] - c[1], pts[ring_idx, 0] - c[0])
         rings.append(ring_idx[np.argsort(ang, kind="stable")])
         remaining[ring_idx] = False
-        if len(tris):
-            tris = tris[~ring_mask[tris].any(axis=1)]
-            tris = _carve(pts, tris, med_edge)
-    return rings, carved
+        if alive.any():
+            alive &= ~ring_mask[tris].any(axis=1)
+            alive = mesh.carve(alive)
+    return rings, edges
 
 
 def peel_rings(blobs: Blobs, n_rings: int) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
@@ -240,8 +262,8 @@ def peel_rings(blobs: Blobs, n_rings: int) -> tuple[list[np.ndarray], np.ndarray
     nn, _ = cKDTree(pts).query(pts, k=2)
     med = float(np.median(nn[:, 1]))
     active = nn[:, 1] <= OUTLIER_NN_FACTOR * med
-    rings, carved = _peel(pts, active, n_rings, med)
-    return rings, mesh_edges(carved, len(pts)), active
+    rings, edges = _peel(pts, active, n_rings, med)
+    return rings, edges, active
 
 
 # ----- coding -------------------------------------------------------------------------------
@@ -363,8 +385,7 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
     active = nn <= OUTLIER_NN_FACTOR * med_nn
     if (~active).any():
         msgs.append(f"dropped {int((~active).sum())} isolated blob(s) outside the lattice")
-    rings, carved = _peel(pts, active, n_layers, med_nn)
-    edges = mesh_edges(carved, n)
+    rings, edges = _peel(pts, active, n_layers, med_nn)
     for r, members in enumerate(rings):
         ring_of[members] = r
     found = tuple(len(r) for r in rings)
