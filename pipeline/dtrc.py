@@ -240,7 +240,7 @@ def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float):
         ring_idx = np.nonzero(ring_mask & remaining)[0]
         if len(ring_idx) == 0:
             break
-        c = pts[rem].mean(axis=0)
+        c = pts[rem].sum(axis=0) / len(rem)
         ang = np.arctan2(pts[ring_idx, 1] - c[1], pts[ring_idx, 0] - c[0])
         rings.append(ring_idx[np.argsort(ang, kind="stable")])
         remaining[ring_idx] = False
@@ -268,14 +268,41 @@ def peel_rings(blobs: Blobs, n_rings: int) -> tuple[list[np.ndarray], np.ndarray
 
 # ----- coding -------------------------------------------------------------------------------
 
+def _median(a: np.ndarray) -> float:
+    """Median of a 1-D array (np.median's result without its per-call overhead)."""
+    s = np.sort(a)
+    n = len(s)
+    return float((s[(n - 1) // 2] + s[n // 2]) / 2)
+
+
+def _cyclic_gaps(xy: np.ndarray) -> np.ndarray:
+    d = np.diff(xy, axis=0, append=xy[:1])  # xy[i + 1] - xy[i], cyclic
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+
+
+def _design_gap_scale(design_xy: np.ndarray) -> float:
+    """Mean design gap of a ring over its median gap (cached with the ring)."""
+    key = design_xy.tobytes()
+    hit = _GAP_CACHE.get(key)
+    if hit is None:
+        gd = _cyclic_gaps(design_xy)
+        hit = _GAP_CACHE[key] = float((gd / _median(gd)).mean())
+    return hit
+
+
+_GAP_CACHE: dict[bytes, float] = {}
+
+
 def _gaps_regular(found: np.ndarray, design_xy: np.ndarray) -> bool:
     """Consecutive gaps of a ring (both cyclic, in angular order) agree with the design's."""
     if len(found) < 3:
         return True
-    gf = np.linalg.norm(np.roll(found, -1, axis=0) - found, axis=1)
-    gd = np.linalg.norm(np.roll(design_xy, -1, axis=0) - design_xy, axis=1)
-    ratio = gf / np.median(gf) / (gd / np.median(gd)).mean()
+    gf = _cyclic_gaps(found)
+    ratio = gf / _median(gf) / _design_gap_scale(design_xy)
     return bool(np.all((ratio < RING_GAP_TOL) & (ratio > 1 / RING_GAP_TOL)))
+
+
+_SHIFTS: dict[int, np.ndarray] = {}
 
 
 def _shift_code(phi: np.ndarray, psi: np.ndarray, theta: float) -> tuple[int, float, float]:
@@ -285,11 +312,13 @@ def _shift_code(phi: np.ndarray, psi: np.ndarray, theta: float) -> tuple[int, fl
     is design slot ``i``.
     """
     n = len(psi)
-    shifts = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n  # row s: found (i + s) % n
+    shifts = _SHIFTS.get(n)
+    if shifts is None:
+        shifts = _SHIFTS[n] = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n  # row s: found (i + s) % n
     r = _wrap(phi[shifts] - psi[None, :] - theta)
-    m = np.arctan2(np.sin(r).mean(axis=1), np.cos(r).mean(axis=1))
+    m = np.arctan2(np.sin(r).sum(axis=1) / n, np.cos(r).sum(axis=1) / n)
     dev = _wrap(r - m[:, None])
-    cost = np.sum(dev * dev, axis=1) + n * m * m
+    cost = np.einsum("ij,ij->i", dev, dev) + n * m * m
     s = int(np.argmin(cost))
     return s, theta + float(m[s]), float(np.max(np.abs(dev[s])))
 
@@ -381,7 +410,7 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
                           messages=(f"only {n} blobs",))
     nn, _ = cKDTree(pts).query(pts, k=2)
     nn = nn[:, 1]
-    med_nn = float(np.median(nn))
+    med_nn = _median(nn)
     active = nn <= OUTLIER_NN_FACTOR * med_nn
     if (~active).any():
         msgs.append(f"dropped {int((~active).sum())} isolated blob(s) outside the lattice")
@@ -407,14 +436,14 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
                 done = True
             else:
                 p = pts[members]
-                c = p.mean(axis=0)
+                c = p.sum(axis=0) / len(p)
                 phi = np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0])
                 o = np.argsort(phi, kind="stable")
                 members, phi = members[o], phi[o]
                 if _gaps_regular(pts[members], d_xy):
                     shift, theta_new, spread = _shift_code(phi, d_ang, theta)
                     if spread < math.pi / len(d_ids):
-                        ids[np.roll(members, -shift)] = d_ids
+                        ids[np.concatenate((members[shift:], members[:shift]))] = d_ids
                         theta = theta_new
                         done = True
         if not done:
@@ -429,7 +458,9 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
     all_ids = np.arange(len(xy_d), dtype=np.int64)
-    unmatched = np.setdiff1d(all_ids, ids[ids >= 0])
+    present = np.zeros(len(xy_d), bool)
+    present[ids[ids >= 0]] = True
+    unmatched = all_ids[~present]
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs))
 
 
