@@ -194,13 +194,14 @@ class Reconstructor:
 
 def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out_dir: str | Path, *,
                 max_frames: int | None = None, preview_every: int = 0, progress: bool = True,
-                echo=print) -> dict:
+                echo=print, on_result=None) -> dict:
     """Run a reconstructor over frames and write results to ``out_dir``.
 
     Per frame: ``markers_XXXX.csv`` and ``markers_XXXX.ply`` (corrected markers), ``skin_XXXX.ply``
     (skin points + normals), ``heightmap_XXXX.npz``; for the last frame (and every ``preview_every``-th
     if > 0) ``surface_XXXX.stl`` / ``surface_XXXX.ply`` meshes and ``preview_XXXX.png``; finally
-    ``summary.json``. Returns the summary dict.
+    ``summary.json``. Returns the summary dict. ``on_result(frame, result)``, if given, is called for
+    every processed frame (e.g. to score it or keep it in memory).
     """
     from tqdm import tqdm
 
@@ -229,6 +230,8 @@ def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out
             if max_frames is not None and k >= max_frames:
                 break
             res = reconstructor.process(frame)
+            if on_result is not None:
+                on_result(frame, res)
             tag = f"{res.index:04d}"
             write_markers_csv(out / f"markers_{tag}.csv", res.corrected)
             write_ply(out / f"markers_{tag}.ply", res.corrected.xyz_mm)

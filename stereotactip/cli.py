@@ -18,6 +18,8 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline import cli as pipeline_cli
     from twin import cli as twin_cli
 
+    from stereotactip import demo
+
     parser = argparse.ArgumentParser(
         prog="stereotactip",
         description="StereoTacTip: stereo marker tactile pipeline, digital twin and benchmarks.",
@@ -25,6 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in (pipeline_cli, twin_cli, bench_cli):
         module.register(sub)
+    demo.register(sub)
     return parser
 
 

@@ -194,3 +194,14 @@ def test_latency_benchmark_writes_json(tmp_path):
     assert set(stages) >= {"detect", "match", "triangulate", "refraction", "surface", "total"}
     assert stored["designs"]["hexagon127"]["matched_min"] == 127
     assert res["paper_ms"] == 283.0 and stages["total"]["p95_ms"] >= stages["total"]["median_ms"] > 0
+
+
+def test_reconstruct_calls_on_result_for_every_frame(tmp_path):
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    frames = [synth_stereo_frame(design, calib, design.rest_markers_mm()) for _ in range(2)]
+    seen = []
+    summary = reconstruct(frames, Reconstructor(design, calib), tmp_path, progress=False, echo=lambda s: None,
+                          on_result=lambda f, r: seen.append((f, r.n_matched)))
+    assert [n for _, n in seen] == [127, 127] and seen[0][0] is frames[0]
+    assert summary["frames"] == 2
