@@ -91,12 +91,14 @@ def closest_points(o1: np.ndarray, d1: np.ndarray, o2: np.ndarray, d2: np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (b * e - d) / denom
         t = (e - b * d) / denom
-    p1 = o1 + s[:, None] * d1
-    p2 = o2 + t[:, None] * d2
+        p1 = o1 + s[:, None] * d1
+        p2 = o2 + t[:, None] * d2
+        mid = 0.5 * (p1 + p2)
+        gap = np.linalg.norm(p1 - p2, axis=1)
     bad = denom < 1e-12
-    mid = 0.5 * (p1 + p2)
     mid[bad] = np.nan
-    return mid, np.linalg.norm(p1 - p2, axis=1)
+    gap[bad] = np.nan
+    return mid, gap
 
 
 def _general(matches: MarkerMatches, calib: StereoCalibration) -> np.ndarray:

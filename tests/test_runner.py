@@ -42,12 +42,7 @@ def _check(result, truth, visible):
     return err
 
 
-@pytest.mark.parametrize("design_name", [
-    "hexagon127", "square121",
-    pytest.param("circular217_dome", marks=pytest.mark.xfail(
-        strict=True, reason="with the nominal cameras 6 outer-ring markers of the 217 dome fall outside the "
-                            "left image (ids 12, 13, 34-37) and DTRC then codes no ring at all")),
-])
+@pytest.mark.parametrize("design_name", ["hexagon127", "square121", "circular217_dome"])
 def test_end_to_end_undeformed_and_pressed(design_name):
     design = load_design(design_name)
     calib = nominal_calibration(design)
