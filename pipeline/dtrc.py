@@ -125,22 +125,45 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _triangulate(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _triangulate(pts: np.ndarray, *, with_exact: bool = False):
     """Delaunay simplices (M, 3) and their neighbours (M, 3) (``neighbors[t, k]``: triangle opposite
-    vertex k, -1 on the hull); joggled when exact lattices leave co-circular points unused."""
+    vertex k, -1 on the hull); joggled when exact lattices leave co-circular points unused.
+    ``with_exact`` also returns whether the triangulation is the exact (unjoggled) one using every point."""
     empty = np.empty((0, 3), np.intp)
-    if len(pts) < 3:
-        return empty, empty
-    try:
-        tri = Delaunay(pts)
-        if np.count_nonzero(np.bincount(tri.simplices.ravel(), minlength=len(pts))) < len(pts):
-            tri = Delaunay(pts, qhull_options="QJ Qbb Qc")
-    except QhullError:
+    out = (empty, empty, False)
+    if len(pts) >= 3:
         try:
-            tri = Delaunay(pts, qhull_options="QJ Qbb Qc")
+            tri = Delaunay(pts)
+            exact = np.count_nonzero(np.bincount(tri.simplices.ravel(), minlength=len(pts))) == len(pts)
+            if not exact:
+                tri = Delaunay(pts, qhull_options="QJ Qbb Qc")
+            out = (tri.simplices.astype(np.intp), tri.neighbors.astype(np.intp), exact)
         except QhullError:
-            return empty, empty
-    return tri.simplices.astype(np.intp), tri.neighbors.astype(np.intp)
+            try:
+                tri = Delaunay(pts, qhull_options="QJ Qbb Qc")
+                out = (tri.simplices.astype(np.intp), tri.neighbors.astype(np.intp), False)
+            except QhullError:
+                pass
+    return out if with_exact else out[:2]
+
+
+def _nn_and_mesh(pts: np.ndarray):
+    """Nearest-neighbour distance of every point (N,) and, when it could be reused, the Delaunay
+    triangulation of all points ((simp, nb) or None).
+
+    The nearest neighbour of a point is one of its Delaunay neighbours, so an exact triangulation
+    gives the NN distances as the shortest incident edges (no k-d tree); otherwise a k-d tree is used.
+    """
+    simp, nb, exact = _triangulate(pts, with_exact=True)
+    if not exact or len(simp) == 0:
+        return cKDTree(pts).query(pts, k=2)[0][:, 1], None
+    e = np.concatenate([simp[:, [0, 1]], simp[:, [1, 2]], simp[:, [2, 0]]])
+    d = pts[e[:, 0]] - pts[e[:, 1]]
+    length = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+    nn = np.full(len(pts), np.inf)
+    np.minimum.at(nn, e[:, 0], length)
+    np.minimum.at(nn, e[:, 1], length)
+    return nn, (simp, nb)
 
 
 def _edge_keys(tris: np.ndarray, n: int):
@@ -154,8 +177,8 @@ class _Mesh:
     the triangle across each slot (-1 on the hull) and the carving criteria, so that the boundary of
     any subset of triangles (an ``alive`` mask) follows from the neighbour table without sorting."""
 
-    def __init__(self, pts: np.ndarray, idx: np.ndarray, med_edge: float) -> None:
-        simp, nb = _triangulate(pts[idx])
+    def __init__(self, pts: np.ndarray, idx: np.ndarray, med_edge: float, tri=None) -> None:
+        simp, nb = _triangulate(pts[idx]) if tri is None else tri
         self.tris = idx[simp] if len(simp) else simp
         self.across = nb[:, [2, 0, 1]] if len(nb) else nb  # slot k is opposite vertex k + 2
         if len(self.tris) == 0:
@@ -208,18 +231,19 @@ def mesh_edges(tris: np.ndarray, n: int) -> np.ndarray:
     return e[first].astype(np.int64)
 
 
-def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float):
+def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float, tri=None):
     """Peel up to ``n_rings`` rings. Returns (list of index arrays, outermost first; carved mesh edges).
 
     One Delaunay triangulation per view: peeling only marks triangles dead in an ``alive`` mask and
-    reads the boundary from the neighbour table.
+    reads the boundary from the neighbour table. ``tri``: a triangulation of all points to reuse
+    when every point is active.
     """
     idx = np.nonzero(active)[0]
     n = len(pts)
     rings: list[np.ndarray] = []
     if len(idx) == 0:
         return rings, np.empty((0, 2), np.int64)
-    mesh = _Mesh(pts, idx, med_edge)
+    mesh = _Mesh(pts, idx, med_edge, tri if len(idx) == n else None)
     tris = mesh.tris
     alive = mesh.carve(np.ones(len(tris), bool))
     edges = mesh.edges(alive, n)
@@ -259,10 +283,10 @@ def peel_rings(blobs: Blobs, n_rings: int) -> tuple[list[np.ndarray], np.ndarray
     pts = np.asarray(blobs.xy_px, dtype=np.float64)
     if len(pts) < 4:
         return [], np.empty((0, 2), np.int64), np.ones(len(pts), bool)
-    nn, _ = cKDTree(pts).query(pts, k=2)
-    med = float(np.median(nn[:, 1]))
-    active = nn[:, 1] <= OUTLIER_NN_FACTOR * med
-    rings, edges = _peel(pts, active, n_rings, med)
+    nn, tri = _nn_and_mesh(pts)
+    med = _median(nn)
+    active = nn <= OUTLIER_NN_FACTOR * med
+    rings, edges = _peel(pts, active, n_rings, med, tri)
     return rings, edges, active
 
 
@@ -316,7 +340,9 @@ def _shift_code(phi: np.ndarray, psi: np.ndarray, theta: float) -> tuple[int, fl
     if shifts is None:
         shifts = _SHIFTS[n] = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n  # row s: found (i + s) % n
     r = _wrap(phi[shifts] - psi[None, :] - theta)
-    m = np.arctan2(np.sin(r).sum(axis=1) / n, np.cos(r).sum(axis=1) / n)
+    # circular mean of each row: sum_i exp(i r_si) = (exp(i phi)[shifts] @ exp(-i psi)) exp(-i theta)
+    z = (np.exp(1j * phi)[shifts] @ np.exp(-1j * psi)) * complex(math.cos(theta), -math.sin(theta))
+    m = np.arctan2(z.imag / n, z.real / n)
     dev = _wrap(r - m[:, None])
     cost = np.einsum("ij,ij->i", dev, dev) + n * m * m
     s = int(np.argmin(cost))
@@ -408,13 +434,12 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
     if n < 4:
         return RingCoding(ids, ring_of, (), expected, np.arange(len(xy_d), dtype=np.int64),
                           messages=(f"only {n} blobs",))
-    nn, _ = cKDTree(pts).query(pts, k=2)
-    nn = nn[:, 1]
+    nn, tri = _nn_and_mesh(pts)
     med_nn = _median(nn)
     active = nn <= OUTLIER_NN_FACTOR * med_nn
     if (~active).any():
         msgs.append(f"dropped {int((~active).sum())} isolated blob(s) outside the lattice")
-    rings, edges = _peel(pts, active, n_layers, med_nn)
+    rings, edges = _peel(pts, active, n_layers, med_nn, tri)
     for r, members in enumerate(rings):
         ring_of[members] = r
     found = tuple(len(r) for r in rings)
