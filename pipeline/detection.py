@@ -261,9 +261,10 @@ def _candidates(grey_f: np.ndarray, params: DetectionParams):
         if not 0 <= k < len(maps) or maps[k] is None:
             return np.full(len(x), -np.inf)
         doh, fx, fy = maps[k][0], maps[k][4], maps[k][5]
-        u = np.clip(np.rint((x + 0.5) / fx - 0.5).astype(np.intp), 0, doh.shape[1] - 1)
-        v = np.clip(np.rint((y + 0.5) / fy - 0.5).astype(np.intp), 0, doh.shape[0] - 1)
-        return doh[v, u].astype(np.float64)
+        # level pixel containing (x, y); coordinates are inside the image (>= 0), so truncation floors
+        u = np.minimum(((x + 0.5) / fx).astype(np.intp), doh.shape[1] - 1)
+        v = np.minimum(((y + 0.5) / fy).astype(np.intp), doh.shape[0] - 1)
+        return doh.ravel()[v * doh.shape[1] + u].astype(np.float64)
 
     out = []
     kernel = np.ones((3, 3), np.uint8)
@@ -281,7 +282,7 @@ def _candidates(grey_f: np.ndarray, params: DetectionParams):
         peaks[-b:, :] = 0
         peaks[:, :b] = 0
         peaks[:, -b:] = 0
-        flat = np.flatnonzero(peaks)
+        flat = np.flatnonzero(peaks.view(np.bool_))  # 0/255 bytes; the bool view scans ~8x faster
         if flat.size == 0:
             continue
         ys, xs = np.divmod(flat, shp[1])
