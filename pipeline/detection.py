@@ -161,8 +161,8 @@ def _hessian_kernels(sigma: float, norm: float):
 _KERNELS: dict[tuple, tuple] = {}
 
 
-def _doh(level: np.ndarray, sigma: float, tag: str = "", *, norm_sigma: float | None = None
-         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _doh(level: np.ndarray, sigma: float, tag: str = "", *, norm_sigma: float | None = None,
+         out: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Scale-normalised Hessian entries and the bright-blob DoH response on one pyramid level.
 
     ``sigma`` is the blur applied here; ``norm_sigma`` (default ``sigma``) the total scale, in level
@@ -170,18 +170,20 @@ def _doh(level: np.ndarray, sigma: float, tag: str = "", *, norm_sigma: float | 
     ``min(Lxx, 0) Lyy - Lxy**2``: where the DoH is positive both eigenvalues share the sign of ``Lxx``,
     so this equals the DoH on bright blobs and is <= 0 on dark ones (never a peak above the positive
     threshold). Element-wise work goes through OpenCV (SIMD) into reused buffers; the returned arrays
-    are workspace views, valid until the next call with the same ``tag``.
+    are workspace views, valid until the next call with the same ``tag``, or ``out`` (DoH, Lxx, Lyy,
+    Lxy destination arrays of the level's shape) when given.
     """
     shp = level.shape
     W = lambda n: _Workspace.get(n + tag, shp)  # noqa: E731
+    o_doh, o_xx, o_yy, o_xy = out if out is not None else (W("doh"), W("lxx"), W("lyy"), W("lxy"))
     g0, gxx, gx = _hessian_kernels(float(sigma), float(sigma if norm_sigma is None else norm_sigma))
-    lxx = cv2.sepFilter2D(level, -1, gxx, g0, dst=W("lxx"))
-    lyy = cv2.sepFilter2D(level, -1, g0, gxx, dst=W("lyy"))
-    lxy = cv2.sepFilter2D(level, -1, gx, gx, dst=W("lxy"))
+    lxx = cv2.sepFilter2D(level, -1, gxx, g0, dst=o_xx)
+    lyy = cv2.sepFilter2D(level, -1, g0, gxx, dst=o_yy)
+    lxy = cv2.sepFilter2D(level, -1, gx, gx, dst=o_xy)
     neg = cv2.min(lxx, 0.0, dst=W("t1"))
     t1 = cv2.multiply(neg, lyy, dst=W("t1"))
     t2 = cv2.multiply(lxy, lxy, dst=W("t2"))
-    return cv2.subtract(t1, t2, dst=W("doh")), lxx, lyy, lxy
+    return cv2.subtract(t1, t2, dst=o_doh), lxx, lyy, lxy
 
 
 def _half(img: np.ndarray, name: str) -> np.ndarray:
@@ -240,86 +242,102 @@ def _candidates(grey_f: np.ndarray, params: DetectionParams):
     neighbouring scales sampled at the same place: edge and plateau responses of a marker at finer
     scales fall here), and its scale is refined by a parabola in log-sigma through those three
     responses. Centres are refined later on the full-resolution image.
+
+    All scales' maps live in one packed buffer per quantity, so the sparse work on the peaks is done
+    once for all scales (flat indices) rather than once per scale.
     """
     sig = np.asarray(sorted(params.sigmas_px), dtype=np.float64)
+    n_s = len(sig)
     log_s = np.log2(sig)
     level_of = np.floor(2 * np.log2(np.maximum(sig / _LEVEL_SIGMA, 1.0))).astype(int)
     level_of[(level_of == 1) & (sig / 2 >= _MIN_HALF_SIGMA)] = 2
     cache: dict = {}
-    maps: list = []  # per scale: (doh, lxx, lyy, lxy, fx, fy) or None
-    for i_s, (j, s_full) in enumerate(zip(level_of, sig)):
+    levels = []
+    for j in level_of:
         level, fx, fy = _level(grey_f, int(j), cache)
-        if min(level.shape) < 5:
-            maps.append(None)
+        levels.append((level, fx, fy) if min(level.shape) >= 5 else None)
+    hs = np.array([lv[0].shape[0] if lv else 0 for lv in levels], np.intp)
+    ws = np.array([lv[0].shape[1] if lv else 1 for lv in levels], np.intp)
+    fxs = np.array([lv[1] if lv else 1.0 for lv in levels])
+    fys = np.array([lv[2] if lv else 1.0 for lv in levels])
+    sizes = np.where(hs > 0, hs * ws, 0)
+    offs = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+    total = int(offs[-1])
+    if total == 0:
+        return np.empty((0, 6))
+    packs = [_Workspace.get(f"pack_{q}", (total,)) for q in ("doh", "lxx", "lyy", "lxy")]
+    peaks_all = _Workspace.get("pack_peaks", (total,), np.uint8)
+    peaks_all.fill(0)
+    kernel = np.ones((3, 3), np.uint8)
+    for i_s, lv in enumerate(levels):
+        if lv is None:
             continue
+        level, fx, fy = lv
+        shp = level.shape
+        views = [p[offs[i_s]:offs[i_s + 1]].reshape(shp) for p in packs]
         f = math.sqrt(fx * fy)
+        s_full = sig[i_s]
         # blur on top of the box averaging so that the total scale is s_full
         s_blur = math.sqrt(max(s_full**2 - max(f * f - 1, 0.0) / 12.0, 0.25 * s_full**2)) / f
-        maps.append(_doh(level, s_blur, f"s{i_s}", norm_sigma=s_full / f) + (fx, fy))
-
-    def sample(k: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        if not 0 <= k < len(maps) or maps[k] is None:
-            return np.full(len(x), -np.inf)
-        doh, fx, fy = maps[k][0], maps[k][4], maps[k][5]
-        # level pixel containing (x, y); coordinates are inside the image (>= 0), so truncation floors
-        u = np.minimum(((x + 0.5) / fx).astype(np.intp), doh.shape[1] - 1)
-        v = np.minimum(((y + 0.5) / fy).astype(np.intp), doh.shape[0] - 1)
-        return doh.ravel()[v * doh.shape[1] + u].astype(np.float64)
-
-    out = []
-    kernel = np.ones((3, 3), np.uint8)
-    for i_s, m in enumerate(maps):
-        if m is None:
-            continue
-        doh, lxx, lyy, lxy, fx, fy = m
-        shp = doh.shape
+        doh = _doh(level, s_blur, f"s{i_s}", norm_sigma=s_full / f, out=views)[0]
         dil = cv2.dilate(doh, kernel, dst=_Workspace.get("dil", shp))
-        m1 = cv2.compare(doh, dil, cv2.CMP_GE, dst=_Workspace.get("m1", shp, np.uint8))
+        m1 = cv2.compare(doh, dil, cv2.CMP_GE, dst=peaks_all[offs[i_s]:offs[i_s + 1]].reshape(shp))
         m2 = cv2.compare(doh, float(params.threshold), cv2.CMP_GT, dst=_Workspace.get("m2", shp, np.uint8))
         peaks = cv2.bitwise_and(m1, m2, dst=m1)
-        b = max(1, int(math.ceil(params.border_px / min(fx, fy))))
+        b = max(1, int(math.ceil(params.border_px / min(fx, fy))))  # >= 1: neighbours stay on the level
         peaks[:b, :] = 0
         peaks[-b:, :] = 0
         peaks[:, :b] = 0
         peaks[:, -b:] = 0
-        flat = np.flatnonzero(peaks.view(np.bool_))  # 0/255 bytes; the bool view scans ~8x faster
-        if flat.size == 0:
-            continue
-        ys, xs = np.divmod(flat, shp[1])
-        # sub-pixel peak in the response (refined later on the full image)
-        c = doh[ys, xs].astype(np.float64)
-        xp, xm = doh[ys, xs + 1], doh[ys, xs - 1]  # peaks are >= 1 px inside the level
-        yp, ym = doh[ys + 1, xs], doh[ys - 1, xs]
-        dx = np.clip(0.5 * (xp - xm) / np.maximum(2 * c - xp - xm, 1e-12), -0.5, 0.5)
-        dy = np.clip(0.5 * (yp - ym) / np.maximum(2 * c - yp - ym, 1e-12), -0.5, 0.5)
-        # peak value of the fitted parabolas (a sample up to half a level px off the peak
-        # under-reads it, which would bias scale selection towards finer levels)
-        c = c + 0.25 * ((xp - xm) * dx + (yp - ym) * dy)
-        x_full, y_full = (xs + dx + 0.5) * fx - 0.5, (ys + dy + 0.5) * fy - 0.5
-        lo, hi = sample(i_s - 1, x_full, y_full), sample(i_s + 1, x_full, y_full)
-        keep = (c >= lo) & (c >= hi)
-        if not keep.any():
-            continue
-        c, lo, hi, x_full, y_full, ys, xs = (a[keep] for a in (c, lo, hi, x_full, y_full, ys, xs))
-        # continuous scale: parabola through the three responses on the log-sigma axis (the sqrt(2)
-        # grid is too coarse to place the background ring just outside the marker)
-        curv = lo - 2 * c + hi
-        inner = np.isfinite(lo) & np.isfinite(hi) & (curv < 0)
-        delta = np.zeros(len(c))
-        delta[inner] = np.clip(0.5 * (lo[inner] - hi[inner]) / curv[inner], -0.5, 0.5)
-        step_dn = log_s[i_s] - log_s[i_s - 1] if i_s > 0 else 0.5
-        step_up = log_s[i_s + 1] - log_s[i_s] if i_s + 1 < len(sig) else 0.5
-        s_cont = 2.0 ** (log_s[i_s] + delta * np.where(delta < 0, step_dn, step_up))
-        a, d, e = (v[ys, xs].astype(np.float64) for v in (lxx, lyy, lxy))
-        tr, det = a + d, a * d - e * e
-        disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
-        l1, l2 = np.abs(tr / 2 - disc), np.abs(tr / 2 + disc)
-        elong = np.maximum(l1, l2) / np.maximum(np.minimum(l1, l2), 1e-12)
-        s_group = 2.0 ** (np.rint(8 * np.log2(s_cont)) / 8)
-        out.append(np.column_stack([x_full, y_full, s_cont, c, elong, s_group]))
-    if not out:
+    g = np.flatnonzero(peaks_all.view(np.bool_))  # 0/255 bytes; the bool view scans ~8x faster
+    if g.size == 0:
         return np.empty((0, 6))
-    return np.concatenate(out)
+    doh_all, lxx_all, lyy_all, lxy_all = packs
+    i_s = np.searchsorted(offs, g, side="right") - 1
+    w = ws[i_s]
+    ys, xs = np.divmod(g - offs[i_s], w)
+    # sub-pixel peak in the response (refined later on the full image)
+    c = doh_all[g].astype(np.float64)
+    xp, xm = doh_all[g + 1], doh_all[g - 1]
+    yp, ym = doh_all[g + w], doh_all[g - w]
+    dx = np.clip(0.5 * (xp - xm) / np.maximum(2 * c - xp - xm, 1e-12), -0.5, 0.5)
+    dy = np.clip(0.5 * (yp - ym) / np.maximum(2 * c - yp - ym, 1e-12), -0.5, 0.5)
+    # peak value of the fitted parabolas (a sample up to half a level px off the peak under-reads
+    # it, which would bias scale selection towards finer levels)
+    c = c + 0.25 * ((xp - xm) * dx + (yp - ym) * dy)
+    x_full = (xs + dx + 0.5) * fxs[i_s] - 0.5
+    y_full = (ys + dy + 0.5) * fys[i_s] - 0.5
+
+    def sample(k: np.ndarray) -> np.ndarray:
+        """Response of scale ``k`` at (x_full, y_full): its level pixel containing the point."""
+        ok = (k >= 0) & (k < n_s)
+        k = np.clip(k, 0, n_s - 1)
+        ok &= hs[k] > 0
+        # coordinates are inside the image (>= 0), so truncation floors
+        u = np.minimum(((x_full + 0.5) / fxs[k]).astype(np.intp), ws[k] - 1)
+        v = np.minimum(((y_full + 0.5) / fys[k]).astype(np.intp), np.maximum(hs[k] - 1, 0))
+        return np.where(ok, doh_all[np.where(ok, offs[k] + v * ws[k] + u, 0)], -np.inf)
+
+    lo, hi = sample(i_s - 1), sample(i_s + 1)
+    keep = (c >= lo) & (c >= hi)
+    c, lo, hi, x_full, y_full, g, i_s = (a[keep] for a in (c, lo, hi, x_full, y_full, g, i_s))
+    # continuous scale: parabola through the three responses on the log-sigma axis (the sqrt(2)
+    # grid is too coarse to place the background ring just outside the marker)
+    curv = lo - 2 * c + hi
+    inner = np.isfinite(lo) & np.isfinite(hi) & (curv < 0)
+    delta = np.zeros(len(c))
+    delta[inner] = np.clip(0.5 * (lo[inner] - hi[inner]) / curv[inner], -0.5, 0.5)
+    steps = np.diff(log_s)
+    step_dn = np.concatenate([[0.5], steps])[i_s]
+    step_up = np.concatenate([steps, [0.5]])[i_s]
+    s_cont = 2.0 ** (log_s[i_s] + delta * np.where(delta < 0, step_dn, step_up))
+    a, d, e = (p[g].astype(np.float64) for p in (lxx_all, lyy_all, lxy_all))
+    tr, det = a + d, a * d - e * e
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
+    l1, l2 = np.abs(tr / 2 - disc), np.abs(tr / 2 + disc)
+    elong = np.maximum(l1, l2) / np.maximum(np.minimum(l1, l2), 1e-12)
+    s_group = 2.0 ** (np.rint(8 * np.log2(s_cont)) / 8)
+    return np.column_stack([x_full, y_full, s_cont, c, elong, s_group])
 
 
 def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
