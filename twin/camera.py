@@ -15,6 +15,7 @@ import numpy as np
 __all__ = [
     "GL_FROM_CV",
     "gl_pose_from_cv_pose",
+    "gl_projection",
     "distort_normalised",
     "undistort_normalised",
     "project_camera_points",
@@ -49,6 +50,37 @@ def gl_pose_from_cv_pose(world_from_camera_cv: np.ndarray) -> np.ndarray:
     """
     T = np.asarray(world_from_camera_cv, dtype=np.float64)
     return T @ GL_FROM_CV
+
+
+def gl_projection(f_px: tuple[float, float], c_px: tuple[float, float], size_px: tuple[int, int],
+                  znear_mm: float, zfar_mm: float) -> np.ndarray:
+    """OpenGL clip-from-camera matrix (4, 4) of a pinhole viewport (pyrender's ``IntrinsicsCamera`` formula).
+
+    Parameters
+    ----------
+    f_px : (fx, fy) focal lengths, px. c_px : (cx, cy) OpenCV principal point, px (centre of the
+    top-left pixel at (0, 0)). size_px : (width, height) of the viewport, px.
+    znear_mm, zfar_mm : clipping distances.
+
+    Notes
+    -----
+    GL window coordinates put pixel centres at +0.5, so the GL principal point is ``c_px + 0.5``; with
+    the camera pose from :func:`gl_pose_from_cv_pose` an OpenCV point (x, y, z) lands at the OpenCV pixel
+    ``(fx x/z + cx, fy y/z + cy)`` counted from the TOP row (the read-back is bottom row first).
+    """
+    fx, fy = float(f_px[0]), float(f_px[1])
+    cx, cy = float(c_px[0]) + 0.5, float(c_px[1]) + 0.5
+    w, h = float(size_px[0]), float(size_px[1])
+    n, f = float(znear_mm), float(zfar_mm)
+    P = np.zeros((4, 4))
+    P[0, 0] = 2.0 * fx / w
+    P[1, 1] = 2.0 * fy / h
+    P[0, 2] = 1.0 - 2.0 * cx / w
+    P[1, 2] = 2.0 * cy / h - 1.0
+    P[3, 2] = -1.0
+    P[2, 2] = (f + n) / (n - f)
+    P[2, 3] = 2.0 * f * n / (n - f)
+    return P
 
 
 def distort_normalised(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
