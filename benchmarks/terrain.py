@@ -117,16 +117,28 @@ def _ideal_tap(job: TapJob) -> np.ndarray:
     return np.column_stack([xy, np.minimum(z_obj, 0.0)])
 
 
-def _twin_tap(job: TapJob) -> np.ndarray:
-    """Skin points (sensor frame) from the digital twin and the unchanged pipeline.
+def _twin_tap(job: TapJob) -> tuple[np.ndarray, np.ndarray]:
+    """Skin points (sensor frame) from the digital twin and the unchanged pipeline, and the tap origin.
 
-    Integration point with the twin (``twin.simulate``, ``twin.render``, ``twin.indenters``) and the
-    pipeline's runner, coded against docs/ARCHITECTURE.md: the terrain patch under the sensor is a
-    ``terrain`` indenter (HeightMap in the sensor frame at the bottom of the tap); the sensor is
-    pressed onto it and the rest and pressed frames go through ``Reconstructor``.
+    The terrain patch under the sensor is a ``terrain`` indenter (its rest surface in the sensor frame
+    touches the skin at its highest point); ``twin.simulate.press`` pushes it in by ``depth`` — how far
+    the relief's highest point under the sensor passes the tap plane — and renders the pressed frame,
+    which goes through :class:`pipeline.runner.Reconstructor` with the twin's true calibration. The
+    reconstructed skin points are what the tap reports; truth is not read.
+
+    The press is capped at the twin's deepest allowed press (``twin.physics.max_depth_mm``: gel −
+    pin − margin, 7.5 mm for the terrain sensor), as a real robot stops at its force limit; a capped
+    tap's skin then rests higher than the tap plane, and the returned origin says where (global z of
+    the undeformed skin centre = highest relief point − depth), so the global chain stays exact.
+
+    Returns
+    -------
+    points_sensor_mm : (N, 3) reconstructed outer-skin points, sensor frame (mm)
+    origin_mm : (3,) global position of the undeformed skin centre at the bottom of the tap (mm)
     """
     try:
         from twin import indenters, render, simulate
+        from twin.physics import max_depth_mm
         from pipeline.runner import Reconstructor
     except ImportError as exc:
         raise TerrainScanError(f"sensor 'twin' needs the twin's physics/renderer ({exc}); use --sensor ideal") from None
@@ -134,36 +146,39 @@ def _twin_tap(job: TapJob) -> np.ndarray:
 
     design = _design()
     tmap = load_terrain_map()
-    # indenter surface at the bottom of the tap (sensor frame); depth is how far the relief's highest
-    # point under the sensor is pushed past the rest skin
+    # indenter surface at the bottom of the tap (sensor frame, +z toward the object); depth is how far
+    # the relief's highest point under the sensor is pushed past the rest skin
     bottom = tap_indenter(tmap, job.centre_mm, skin_z_mm=job.tap_z_mm, radius_mm=design.gel.radius_mm + 2.0,
                           spacing_mm=0.2)
-    depth = max(0.0, -float(np.nanmin(bottom.z_mm)))
-    rest_surface = HeightMap(bottom.x_mm, bottom.y_mm, bottom.z_mm + depth)
+    want = max(0.0, -float(np.nanmin(bottom.z_mm)))
+    depth = min(want, max_depth_mm(design))
+    rest_surface = HeightMap(bottom.x_mm, bottom.y_mm, bottom.z_mm + want)
     indenter = indenters.make_indenter("terrain", height_map=rest_surface)
     rng = np.random.default_rng(job.seed)
-    frames = simulate.press(design, indenter, depth_mm=depth, rng=rng)
+    pairs = simulate.press(design, indenter, depth_mm=depth, rng=rng)     # [(StereoFrame, Truth)]
     calib = render.true_calibration(design)
     rec = Reconstructor(design, calib)
-    res = [rec.process(f) for f in frames]
-    last = res[-1]
+    last = [rec.process(frame) for frame, _truth in pairs][-1]
     if last.skin is None:
         raise TerrainScanError(f"tap {job.region}#{job.index}: too few markers reconstructed")
-    return np.asarray(last.skin.xyz_mm, dtype=np.float64)
+    origin = job.origin_mm()
+    origin[2] += want - depth       # capped press: the skin stopped (want - depth) mm above the tap plane
+    return np.asarray(last.skin.xyz_mm, dtype=np.float64), origin
 
 
 def run_tap(job: TapJob) -> str:
     """Run one tap and write its file (atomically); returns the path. Top-level for spawn pickling."""
     t0 = time.perf_counter()
+    origin = job.origin_mm()
     if job.sensor == "ideal":
         pts = _ideal_tap(job)
     elif job.sensor == "twin":
-        pts = _twin_tap(job)
+        pts, origin = _twin_tap(job)
     else:
         raise TerrainScanError(f"unknown sensor back end {job.sensor!r} (ideal, twin)")
     path = Path(job.path)
     tmp = path.with_name(path.stem + ".partial.npz")
-    np.savez_compressed(tmp, points_sensor_mm=pts, origin_mm=job.origin_mm(), region=job.region,
+    np.savez_compressed(tmp, points_sensor_mm=pts, origin_mm=origin, region=job.region,
                         index=job.index, sensor=job.sensor, wall_s=time.perf_counter() - t0)
     os.replace(tmp, path)
     return str(path)
