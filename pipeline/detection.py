@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.types import Blobs, DataError
 
-__all__ = ["DetectionParams", "detect_markers", "to_grey"]
+__all__ = ["DetectionParams", "detect_markers", "marker_radius_px", "to_grey"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,45 @@ class DetectionParams:
             raise DataError(f"DetectionParams.threshold: must be > 0, got {self.threshold}")
         if self.border_px < 0 or self.min_separation_px < 0:
             raise DataError("DetectionParams.border_px / min_separation_px: must be >= 0")
+
+    def for_marker_radius(self, radius_px: float) -> "DetectionParams":
+        """These parameters with the scale space narrowed to markers of about ``radius_px`` (px).
+
+        Keeps three consecutive scales of ``sigmas_px``: the one nearest ``radius_px / sqrt(2)`` and
+        its neighbours (the same grid, so the same discretisation and scale selection as the full
+        set). With the default sqrt(2) grid the interpolated scale then sizes markers from ~0.7 r to
+        ~1.4 r (indentation changes the apparent size by far less), and the scale space costs about
+        half (the fine scales, which run on the largest pyramid levels, are skipped). Typical use:
+        detect the first frame with the defaults, then ``params.for_marker_radius(marker_radius_px(blobs))``
+        for the stream.
+
+        Raises
+        ------
+        DataError
+            ``radius_px`` is not a positive finite number.
+        """
+        r = float(radius_px)
+        if not (r > 0 and math.isfinite(r)):
+            raise DataError(f"DetectionParams.for_marker_radius: radius_px must be positive and finite, got {radius_px}")
+        sig = sorted(self.sigmas_px)
+        if len(sig) <= 3:
+            return self
+        k = int(np.argmin(np.abs(np.log(np.asarray(sig) * math.sqrt(2) / r))))
+        k = min(max(k - 1, 0), len(sig) - 3)
+        return replace(self, sigmas_px=tuple(sig[k:k + 3]))
+
+
+def marker_radius_px(blobs: Blobs) -> float:
+    """Typical marker radius (px) of a detection: ``sqrt(2)`` x the median scale.
+
+    Raises
+    ------
+    DataError
+        ``blobs`` is empty.
+    """
+    if len(blobs) == 0:
+        raise DataError("marker_radius_px: no blobs detected, cannot estimate the marker radius")
+    return float(math.sqrt(2) * np.median(blobs.sigma_px))
 
 
 def to_grey(image: np.ndarray, *, name: str = "image") -> np.ndarray:

@@ -122,3 +122,50 @@ def test_real_tactip_frames_find_331_pins_and_no_glare(path):
     # one scale of marker: no blob off the median by more than the size-ratio rule allows
     med = np.median(blobs.sigma_px)
     assert np.all(blobs.sigma_px <= DetectionParams().max_size_ratio * med)
+
+
+@pytest.mark.parametrize("radius_px", [3.0, 5.0, 8.0])
+def test_scale_space_narrowed_to_the_marker_radius_keeps_accuracy(radius_px):
+    """Three scales about the estimated radius (the streaming fast path) find the same discs with
+    the same centre tolerances as the full scale space."""
+    from pipeline.detection import marker_radius_px
+
+    rng = np.random.default_rng(int(radius_px * 10) + 1)
+    img, truth = _disc_image(radius_px, rng)
+    full = detect_markers(img)
+    r_est = marker_radius_px(full)
+    assert radius_px / 1.5 <= r_est <= radius_px * 1.5
+    params = DetectionParams().for_marker_radius(r_est)
+    assert len(params.sigmas_px) == 3
+    assert min(params.sigmas_px) <= r_est / np.sqrt(2) <= max(params.sigmas_px)
+    blobs = detect_markers(img, params=params)
+    assert len(blobs) == len(truth)
+    d, _ = cKDTree(blobs.xy_px).query(truth)
+    assert np.sqrt(np.mean(d**2)) <= CENTRE_RMS_TOL_PX
+    assert d.max() <= CENTRE_MAX_TOL_PX
+
+
+def test_narrowing_needs_a_radius_and_blobs():
+    from pipeline.detection import marker_radius_px
+
+    for bad in (0.0, -2.0, float("nan"), float("inf")):
+        with pytest.raises(DataError, match="radius_px"):
+            DetectionParams().for_marker_radius(bad)
+    with pytest.raises(DataError, match="no blobs"):
+        marker_radius_px(Blobs.empty())
+
+
+@pytest.mark.skipif(not REAL, reason=f"real TacTip frames not found in {DATA}")
+@pytest.mark.parametrize("path", REAL, ids=lambda p: p.name)
+def test_real_frames_with_narrowed_scales_keep_count_and_reject_glare(path):
+    """Measured with the scales narrowed from each frame's own first detection: 329 / 331 / 329 / 330
+    pins (raw, tap_1..3), none in the glare."""
+    from pipeline.detection import marker_radius_px
+
+    img = cv2.imread(str(path))
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    params = DetectionParams().for_marker_radius(marker_radius_px(detect_markers(img)))
+    blobs = detect_markers(img, params=params)
+    assert 325 <= len(blobs) <= 335
+    ij = np.rint(blobs.xy_px).astype(int)
+    assert not _glare_mask(grey)[ij[:, 1], ij[:, 0]].any()

@@ -199,3 +199,29 @@ def test_detect_cli_on_a_drawn_stereo_frame(tmp_path, capsys):
     m = match_stereo(detect_markers(frame[:, :640]), detect_markers(frame[:, 640:]), design)
     np.testing.assert_array_equal(m.ids, np.arange(127))
     assert np.max(np.linalg.norm(m.left_px - left, axis=1)) < 0.1  # drawn to 1/16 px, centroid error < 0.05
+
+
+def test_mesh_boundary_from_neighbour_table_matches_edge_counting():
+    """The peel reads boundaries from Delaunay's neighbour table; on random subsets of triangles it
+    must equal the definition (edges used by exactly one alive triangle), and the NN distances taken
+    from the mesh edges must equal a k-d tree's."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.dtrc import _Mesh, _nn_and_mesh
+
+    rng = np.random.default_rng(21)
+    pts = _view(load_design("circular217_dome"), rng, bulge=0.1)
+    nn, tri = _nn_and_mesh(pts)
+    assert tri is not None  # exact triangulation: NN taken from the mesh edges
+    np.testing.assert_allclose(nn, cKDTree(pts).query(pts, k=2)[0][:, 1], rtol=1e-12)
+    mesh = _Mesh(pts, np.arange(len(pts)), 10.0, tri)
+    for _ in range(20):
+        alive = rng.random(len(mesh.tris)) < rng.uniform(0.3, 1.0)
+        t = mesh.tris[alive]
+        e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+        uniq, cnt = np.unique(e, axis=0, return_counts=True)
+        expected = {tuple(x) for x in uniq[cnt == 1].tolist()}
+        tt, kk = np.nonzero(mesh.on_boundary(alive))
+        got = {tuple(sorted((int(mesh.tris[a, k]), int(mesh.tris[a, (k + 1) % 3])))) for a, k in zip(tt, kk)}
+        assert got == expected
+        assert {tuple(x) for x in mesh.edges(alive, len(pts)).tolist()} == {tuple(x) for x in uniq.tolist()}
