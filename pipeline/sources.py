@@ -168,8 +168,8 @@ def open_source(spec: int | str | os.PathLike, *, loop: bool = False) -> FrameSo
     ----------
     spec : int, str or path
         A camera index (``0`` or ``"0"``; opened with cv2.VideoCapture requesting 1280x480), a video
-        file, a folder of images (sorted by name; ``timestamps.csv`` from :func:`record` is honoured)
-        or a single image file.
+        file, a folder of images (sorted by name; if any are named ``frame_*`` only those are read;
+        ``timestamps.csv`` from :func:`record` is honoured) or a single image file.
     loop : bool
         Restart a video or folder at its end (for demos); ignored for cameras and single images.
 
@@ -190,6 +190,10 @@ def open_source(spec: int | str | os.PathLike, *, loop: bool = False) -> FrameSo
     path = Path(spec)
     if path.is_dir():
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        # A recording (ours or the twin's) names its frames frame_*; then other images in the folder
+        # (previews, annotated copies) are not frames.
+        frames_only = [p for p in files if p.name.startswith("frame_")]
+        files = frames_only or files
         if not files:
             raise SourceError(f"{path}: folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
         return _FileSource(str(path), "folder", files, _read_timestamps(path), loop=loop)

@@ -144,3 +144,12 @@ def test_closed_source_refuses_iteration(tmp_path):
     src.close()
     with pytest.raises(SourceError, match="closed"):
         iter(src)
+
+
+def test_folder_with_frame_files_ignores_other_images(tmp_path):
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"frame_{i:04d}.png"), np.full((480, 1280, 3), 40 * i, np.uint8))
+    cv2.imwrite(str(tmp_path / "preview.png"), np.zeros((300, 300, 4), np.uint8))  # not a frame
+    with open_source(tmp_path) as src:
+        frames = list(src)
+    assert [int(f.image[0, 0, 0]) for f in frames] == [0, 40]
