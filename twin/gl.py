@@ -223,7 +223,8 @@ class FlatRenderer:
     Notes
     -----
     Colours are written as given (three floats in [0, 1]); the read-back is (H, W, 3) uint8 in the
-    same channel order, BOTTOM row first (OpenGL order). Back faces are drawn (no culling), depth test on.
+    same channel order, BOTTOM row first (OpenGL order). Depth test on; back faces are drawn unless a
+    mesh asks for culling.
     """
 
     def __init__(self, width_px: int, height_px: int, *, samples: int = 4) -> None:
@@ -234,7 +235,7 @@ class FlatRenderer:
         self.width, self.height, self.samples = int(width_px), int(height_px), int(samples)
         self._offscreen = offscreen_renderer(8, 8)          # context owner only (its own buffers stay tiny)
         self._platform = self._offscreen._platform
-        self._meshes: dict[object, list] = {}               # key -> [vao, vbo, ibo, n_index, n_vertex, colour]
+        self._meshes: dict[object, list] = {}      # key -> [vao, vbo, ibo, n_index, n_vertex, colour, cull]
         self._platform.make_current()
         try:
             self._program = shaders.compileProgram(shaders.compileShader(_FLAT_VERT, GL.GL_VERTEX_SHADER),
@@ -264,8 +265,13 @@ class FlatRenderer:
         finally:
             self._platform.make_uncurrent()
 
-    def set_mesh(self, key, positions: np.ndarray, faces: np.ndarray | None, colour) -> None:
-        """Create or update mesh ``key``: positions (V, 3) float; faces (F, 3) int (None: keep the old ones)."""
+    def set_mesh(self, key, positions: np.ndarray, faces: np.ndarray | None, colour, *,
+                 cull_back: bool = False) -> None:
+        """Create or update mesh ``key``: positions (V, 3) float; faces (F, 3) int (None: keep the old ones).
+
+        ``cull_back`` skips triangles seen from behind (counter-clockwise around their outward normal
+        = front): only for closed, consistently outward-wound shells whose back half is hidden anyway.
+        """
         GL = self._GL
         pos = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3)
         entry = self._meshes.get(key)
@@ -282,7 +288,7 @@ class FlatRenderer:
                 GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 12, None)
                 GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ibo)   # recorded in the VAO
                 GL.glBindVertexArray(0)
-                entry = [vao, vbo, ibo, 0, -1, None]
+                entry = [vao, vbo, ibo, 0, -1, None, False]
                 self._meshes[key] = entry
             GL.glBindBuffer(GL.GL_ARRAY_BUFFER, entry[1])
             if len(pos) == entry[4]:
@@ -300,6 +306,7 @@ class FlatRenderer:
                 GL.glBindVertexArray(0)
                 entry[3] = idx.size
             entry[5] = np.asarray(colour, dtype=np.float32).reshape(3)
+            entry[6] = bool(cull_back)
         finally:
             self._platform.make_uncurrent()
 
@@ -330,22 +337,32 @@ class FlatRenderer:
             GL.glEnable(GL.GL_DEPTH_TEST)
             GL.glDepthFunc(GL.GL_LESS)
             GL.glDisable(GL.GL_CULL_FACE)
+            GL.glFrontFace(GL.GL_CCW)
+            GL.glCullFace(GL.GL_BACK)
+            culling = False
             GL.glDisable(GL.GL_BLEND)
             if self.samples > 0:
                 GL.glEnable(GL.GL_MULTISAMPLE)
             GL.glUseProgram(self._program)
+            GL.glEnable(GL.GL_SCISSOR_TEST)      # a guard-band rasteriser must not spill into the next viewport
             for viewport, mvp, keys in passes:
                 GL.glViewport(*(int(v) for v in viewport))
+                GL.glScissor(*(int(v) for v in viewport))
                 GL.glUniformMatrix4fv(self._loc_mvp, 1, GL.GL_TRUE, np.ascontiguousarray(mvp, dtype=np.float32))
                 for key in keys:
-                    vao, _, _, n_index, _, colour = self._meshes[key]
+                    vao, _, _, n_index, _, colour, cull = self._meshes[key]
                     if n_index == 0:
                         continue
+                    if cull != culling:
+                        (GL.glEnable if cull else GL.glDisable)(GL.GL_CULL_FACE)
+                        culling = cull
                     GL.glUniform3fv(self._loc_colour, 1, colour)
                     GL.glBindVertexArray(vao)
                     GL.glDrawElements(GL.GL_TRIANGLES, n_index, GL.GL_UNSIGNED_INT, None)
             GL.glBindVertexArray(0)
             GL.glUseProgram(0)
+            GL.glDisable(GL.GL_CULL_FACE)
+            GL.glDisable(GL.GL_SCISSOR_TEST)
             w, h = self.width, self.height
             GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._fb_draw)
             GL.glBindFramebuffer(GL.GL_DRAW_FRAMEBUFFER, self._fb_read)
