@@ -271,8 +271,8 @@ def test_registered_experiment_invariants(name, tmp_path):
     assert "quick" in exp.tags or "full-only" in exp.tags
     for metric, pv in exp.paper.items():
         assert pv.unit == exp.metrics[metric], f"{name}.{metric}: paper unit differs from the metric's"
-    if not exp.available():  # thresholds can only be measured once the upstream modules exist
-        pytest.skip(f"{name}: upstream module(s) not landed: {exp.missing_requirements()}")
+    # every upstream module has landed: an unavailable experiment is a broken install, not a skip
+    assert exp.available(), f"{name}: required module(s) missing: {exp.missing_requirements()}"
     if "quick" in exp.tags:
         assert THRESHOLDS.get(name), f"{name}: its quick variant has no thresholds in benchmarks/thresholds.toml"
     if "cheap" not in exp.tags:

@@ -1,0 +1,61 @@
+"""twin: speed and fidelity of the digital twin itself (wraps ``twin.cli.run_twin_bench``).
+
+``run_twin_bench`` presses a σ² = 10 mm² Gaussian 5 mm into the default sensor three times (MuJoCo
+skin, model built each time) and renders 20 stereo frames of the pressed state; it reports seconds
+per press, milliseconds per stereo frame and the skin-to-indenter gap over the contact points. Its
+raw ``twin.json`` is kept in ``OUT/twin_bench/`` (``OUT/twin.json`` is this experiment's record).
+Speed is machine-dependent (2 shared cores here): its threshold is a loose regression guard; the
+gap is physics and is gated tightly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks.registry import Context, Finding, Result, register
+
+
+@register(
+    "twin",
+    tags=("quick",),
+    metrics={
+        "press_s_median": "s",
+        "model_build_s_median": "s",
+        "frame_ms_median": "ms",
+        "gap_max_mm": "mm",
+        "gap_rms_mm": "mm",
+        "settle_converged_fraction": "1",
+        "mesh_dofs": "1",
+    },
+    requires=("twin.cli", "twin.physics", "twin.render"),
+)
+def run(ctx: Context) -> Result:
+    """Digital twin: seconds per 5 mm press, ms per stereo frame, skin-indenter gap in contact."""
+    from pipeline.design import load_design
+    from twin.cli import run_twin_bench
+
+    raw = run_twin_bench(ctx.out_dir / "twin_bench", quick=ctx.quick)
+    out = Result(designs=[load_design(raw["design"])])
+    out.metric("press_s_median", raw["press_s_median"], "s")
+    out.metric("model_build_s_median", raw["model_build_s_median"], "s")
+    frame_ms = raw.get("frame_ms_median")
+    out.metric("frame_ms_median", float("nan") if frame_ms is None else frame_ms, "ms")
+    out.metric("gap_max_mm", raw["gap_max_mm"], "mm")
+    out.metric("gap_rms_mm", raw["gap_rms_mm"], "mm")
+    out.metric("settle_converged_fraction", float(np.mean(raw["settle_converged"])), "1")
+    out.metric("mesh_dofs", raw["mesh_dofs"], "1")
+    out.tables["presses"] = [{"press_s": p, "settle_steps": s, "converged": bool(c)}
+                             for p, s, c in zip(raw["press_s_all"], raw["settle_steps"], raw["settle_converged"])]
+    goals = raw.get("goals", {})
+    out.notes.append(f"Twin goals on the reference machine (twin.cli): press ≤ {goals.get('press_s')} s, "
+                     f"gap ≤ {goals.get('gap_max_mm')} mm, ≤ {goals.get('frame_ms')} ms per frame. "
+                     f"MuJoCo warnings: {raw.get('mujoco_warnings')}. Raw output: twin_bench/twin.json.")
+    if raw.get("render_note"):
+        out.notes.append(raw["render_note"])
+    for key, metric, unit in (("press_s", "press_s_median", "s"), ("gap_max_mm", "gap_max_mm", "mm"),
+                              ("frame_ms", "frame_ms_median", "ms")):
+        if key in goals:
+            v = out.metrics[metric][0]
+            out.findings.append(Finding(f"twin goal: {metric} ≤ {goals[key]:g} {unit}", f"{v:.3g} {unit} measured",
+                                        None if not np.isfinite(v) else bool(v <= goals[key])))
+    return out
