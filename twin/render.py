@@ -5,8 +5,8 @@ Pipeline of one view (camera ``side``):
 1. Geometry in the sensor frame (mm): marker discs on dark pins, the dark skin underside, the mount
    ring with four LEDs (skin module), or a chessboard / printed marker board (skin-less).
 2. Refraction: every vertex behind the acrylic/gel stack is moved to its *apparent* position for that
-   camera (:func:`twin.optics.apparent_points`, exact Snell per vertex; the moving markers warm-start
-   from the previous frame's rays). Each camera has its own vertex buffers.
+   camera (:func:`twin.optics.apparent_points`, exact Snell per vertex). Each camera has its own
+   vertex buffers.
 3. A flat-shaded (unlit) pinhole render with a field wider than the output, 4x MSAA, both views side
    by side in ONE framebuffer (:class:`twin.gl.FlatRenderer`: one clear, resolve and read-back).
 4. Lens distortion: one ``cv2.remap`` for the pair with maps precomputed once: for each output pixel the
@@ -32,7 +32,7 @@ from pipeline.design import SensorDesign
 from pipeline.types import StereoCalibration, StereoFrame
 from twin.camera import gl_pose_from_cv_pose, gl_projection, pixels_to_normalised
 from twin.gl import FlatRenderer, RenderError
-from twin.optics import FlatStack, apparent_points, project_exact, solve_paths, trace_forward
+from twin.optics import FlatStack, apparent_points, project_exact, trace_forward
 
 __all__ = [
     "StereoRenderer",
@@ -322,7 +322,6 @@ class StereoRenderer:
         self._views, (self._w_r, self._h_r) = self._make_views()
         self._gl = FlatRenderer(2 * self._w_r, self._h_r, samples=MSAA_SAMPLES)
         self._faces: dict[tuple[str, str], np.ndarray] = {}     # (side, name) -> faces last uploaded
-        self._q_warm: dict[tuple[str, int], np.ndarray] = {}     # (side, n) -> last tan(theta_air) per vertex
         self._marker_templates: dict[int, tuple] = {}
         self._static_done: set[str] = set()
         self._frame_index = 0
@@ -414,17 +413,11 @@ class StereoRenderer:
         if not same:
             self._faces[key] = faces
 
-    def _refracted(self, side: str, pts: np.ndarray, through_stack: bool, *, warm: bool = False) -> np.ndarray:
-        """Apparent positions of ``pts`` for camera ``side``; ``warm`` reuses the last frame's rays as a start."""
+    def _refracted(self, side: str, pts: np.ndarray, through_stack: bool) -> np.ndarray:
+        # (a warm start from the previous frame's rays was measured: no gain, Newton needs ~4 steps anyway)
         if not through_stack:
             return pts
-        if not warm:
-            return apparent_points(pts, self._views[side].centre, self._stack)
-        key = (side, len(pts))
-        paths = solve_paths(self._views[side].centre, pts, self._stack, with_hits=False, q0=self._q_warm.get(key))
-        p = paths.ray_parameter
-        self._q_warm[key] = p / np.sqrt(1.0 - p * p)
-        return paths.apparent_mm
+        return apparent_points(pts, self._views[side].centre, self._stack)
 
     def _ensure_module_static(self) -> None:
         """Mount ring, LEDs and (when no skin mesh is given) the flat skin underside; refracted once."""
@@ -582,7 +575,7 @@ class StereoRenderer:
         splits = np.cumsum([len(parts[k][0]) for k in order])[:-1]
         for side in SIDES:
             t0 = time.perf_counter()
-            apparent = np.split(self._refracted(side, all_world, True, warm=True), splits)
+            apparent = np.split(self._refracted(side, all_world, True), splits)
             t1 = time.perf_counter()
             for name, app in zip(order, apparent):
                 self._set_mesh(side, name, app, parts[name][1], colours[name])
