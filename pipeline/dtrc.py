@@ -198,16 +198,18 @@ class _Mesh:
         nb_alive = np.where(self.across >= 0, alive[self.across], False)
         return alive[:, None] & ~nb_alive
 
-    def carve(self, alive: np.ndarray) -> np.ndarray:
-        """Remove boundary slivers and long boundary edges until the boundary follows the lattice."""
+    def carve(self, alive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Remove boundary slivers and long boundary edges until the boundary follows the lattice.
+        Returns the carved alive mask and its boundary (:meth:`on_boundary`)."""
         alive = alive.copy()
+        on_b = self.on_boundary(alive)
         for _ in range(len(alive)):
-            on_b = self.on_boundary(alive)
             bad = on_b.any(axis=1) & (self.sliver | (on_b & self.long).any(axis=1))
             if not bad.any():
                 break
             alive &= ~bad
-        return alive
+            on_b = self.on_boundary(alive)
+        return alive, on_b
 
     def edges(self, alive: np.ndarray, n: int) -> np.ndarray:
         """Unique undirected edges (E, 2) of the alive triangles, in :func:`mesh_edges` order."""
@@ -245,7 +247,7 @@ def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float, tr
         return rings, np.empty((0, 2), np.int64)
     mesh = _Mesh(pts, idx, med_edge, tri if len(idx) == n else None)
     tris = mesh.tris
-    alive = mesh.carve(np.ones(len(tris), bool))
+    alive, on_b = mesh.carve(np.ones(len(tris), bool))
     edges = mesh.edges(alive, n)
     remaining = np.zeros(n, bool)
     remaining[idx] = True
@@ -257,7 +259,7 @@ def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float, tr
         ring_mask = np.zeros(n, bool)
         if alive.any():
             in_tri[tris[alive].ravel()] = True
-            t, k = np.nonzero(mesh.on_boundary(alive))
+            t, k = np.nonzero(on_b)
             ring_mask[tris[t, k]] = True
             ring_mask[tris[t, (k + 1) % 3]] = True
         ring_mask |= remaining & ~in_tri  # isolated leftovers (e.g. the centre) belong to this ring
@@ -270,7 +272,7 @@ def _peel(pts: np.ndarray, active: np.ndarray, n_rings: int, med_edge: float, tr
         remaining[ring_idx] = False
         if alive.any():
             alive &= ~ring_mask[tris].any(axis=1)
-            alive = mesh.carve(alive)
+            alive, on_b = mesh.carve(alive)
     return rings, edges
 
 
