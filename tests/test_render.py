@@ -33,16 +33,17 @@ CENTROID_TOL_PX = 0.3
 # t·tanθ_gel/2 · 18 px/mm ≈ 0.3·0.45/2·18 ≈ 1.2 px (darker wall albedo: less); bound used: 1.0 px.
 THICK_CENTROID_TOL_PX = 1.0
 # Ray-traced reference vs per-vertex render: same photometric chain, so the residual is MSAA (4 samples
-# per pixel on ~60 edge pixels: ~0.02 px), the 32-gon vs circle (area −0.64 %, centroid 0), the bilinear
-# lens remap with 1/32-px fixed-point maps (~0.02 px) and the per-vertex linear interpolation (second
-# order over 1 mm: < 0.01 px). Measured: typically 0.01-0.05 px, worst 0.10 px (one oblique, tilted
-# outer marker, the same at quality="high", not yet explained); bound 0.15 px.
+# per pixel on ~60 edge pixels: ~0.02 px), the area-matched 16-gon vs circle (area 0, outline +1.3/−0.7 %,
+# centroid 0 by symmetry), the bilinear lens remap with 1/32-px fixed-point maps from a 0.8x pinhole
+# render (~0.03 px) and the per-vertex linear interpolation (second order over 1 mm: < 0.01 px).
+# Measured: typically 0.01-0.06 px, worst 0.08 px (mass ≤ 1.2 %); bound 0.15 px.
 TRACE_CENTROID_TOL_PX = 0.15
 TRACE_AREA_TOL = 0.03         # relative "bright mass" difference (0.64 % polygon + remap smoothing)
 # Chessboard corners. findChessboardCornersSB's own localisation on these strongly barrel-distorted views
 # is the limit: measured RMS 0.12 px, worst 0.45 px, the SAME noise-free and at quality="high" (so not
-# the renderer's). cv2.cornerSubPix (4 px window) on the same frames: RMS 0.10 px, worst 0.29 px at
-# "fast", RMS 0.05 / worst 0.13 px at "high" (the residual at "fast" is edge sampling of the 1x render).
+# the renderer's). cv2.cornerSubPix (4 px window) on the same frames: RMS 0.11 px, worst 0.32 px at
+# "fast", RMS 0.05 / worst 0.13 px at "high" (the residual at "fast" is edge sampling of the 0.8x render;
+# 0.27 px worst at a 1x render).
 SB_RMS_TOL_PX, SB_MAX_TOL_PX = 0.2, 0.6
 SUBPIX_RMS_TOL_PX, SUBPIX_MAX_TOL_PX = 0.15, 0.4
 
