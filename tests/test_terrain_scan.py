@@ -88,7 +88,8 @@ def test_bad_options_are_user_errors(tmp_path):
 def test_cli_entry(tmp_path, capsys):
     from benchmarks.cli_terrain import main
 
-    assert main(["terrain", "--regions", "english_channel", "--out", str(tmp_path), "--workers", "1"]) == 0
+    assert main(["terrain", "--regions", "english_channel", "--out", str(tmp_path), "--workers", "1",
+                 "--sensor", "ideal"]) == 0
     assert "english_channel" in capsys.readouterr().out
     assert main(["terrain", "--regions", "nowhere", "--out", str(tmp_path)]) == 2
 
