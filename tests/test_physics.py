@@ -119,25 +119,89 @@ def test_sine_valleys_keep_the_skin_out():
     assert sim.indenter_z_at(valley[None, :2])[0] - valley[2] > 1.0
 
 
-@pytest.mark.xfail(reason="KNOWN DEFECT: on steep flanks (slope ~1) some vertex spheres sink through MuJoCo's "
-                          "per-prism height-field collision (measured 26% of touching vertices, up to 2.5 mm)",
-                   strict=True)
 def test_sine_flanks_do_not_penetrate():
     d = load_design("hexagon127")
     sim, _, _ = _press(d, make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=2 * np.pi / 15), 4.0)
     assert sim.gap_mm().min() >= -PENETRATION_TOL_MM
 
 
+def _det_f(sim, tets):
+    def vol6(Y):
+        return np.linalg.det(np.stack([Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0], Y[:, 3] - Y[:, 0]], axis=2))
+    return vol6(sim.nodes_mm()[tets]) / vol6(sim.mesh.nodes_mm[tets])
+
+
+SKIN_KEEP_FRACTION = 0.8     # the skin is not crushed: thickness >= 80 % of its incompressible membrane value
+MARKER_DEPTH_REL_TOL = 0.15  # marker-to-outer-skin distance along the axis within 15 % of T + H
+
+
+SHARP_MESH = MeshSpec(core_mm=0.75)   # a σ² = 5/3 tip pokes between 1.5 mm vertices; 0.75 mm core about the axis
+
+
+@pytest.mark.parametrize("sigma2,depth,mesh", [
+    (10.0, 5.0, MeshSpec()),
+    pytest.param(5 / 3, 3.0, SHARP_MESH, marks=pytest.mark.xfail(
+        reason="KNOWN DEFECT: under the sharp tip (point load on a few 0.75 mm-core vertices) the skin is "
+               "compressed to 0.56 T where membrane stretch explains 0.77 T; centre marker 2.07 mm below the "
+               "outer skin instead of T + H = 2.5 mm (-17 %)", strict=True)),
+])
+def test_no_inverted_elements_and_skin_keeps_its_thickness(sigma2, depth, mesh):
+    """Under the paper's presses no tetrahedron inverts (det F > 0); the skin at the apex is not crushed
+    and the marker under the apex stays T + H (within 15 %) below the outer skin, as the pipeline's skin
+    model assumes. (St Venant–Kirchhoff inverted 302 gel tetrahedra here, min det F = -1.15, skin 0.41 T.)
+
+    The rim is clamped, so a 5 mm dimple stretches the skin (measured ≈ 18 % biaxially at the apex);
+    an incompressible skin then thins to T / (λ1 λ2), not T. Compression through the thickness beyond
+    that (crushing by the contact) is what must not happen: thickness >= 0.8 T / (λ1 λ2).
+    """
+    d = load_design("hexagon127")
+    T, H = d.skin.thickness_mm, d.pins.height_mm
+    sim, stats, truth = _press(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=sigma2), depth, mesh)
+    assert stats.converged
+    for tets in (sim.mesh.tets_skin, sim.mesh.tets_gel):
+        assert _det_f(sim, tets).min() > 0.0
+    X, X0 = sim.nodes_mm(), sim.mesh.nodes_mm
+    centre = np.hypot(X0[:, 0], X0[:, 1]) < 1e-6
+    z_outer = X[centre & (np.abs(X0[:, 2]) < 1e-9), 2][0]
+    z_under = X[centre & (np.abs(X0[:, 2] + T) < 1e-9), 2][0]
+    rest = d.rest_markers_mm()
+    i = np.argmin(np.hypot(rest[:, 0], rest[:, 1]))
+    m, a = truth.marker_xyz_mm[i], truth.marker_axis[i]
+    v = truth.skin_vertices_mm
+    j = np.argmin(np.hypot(v[:, 0] - m[0], v[:, 1] - m[1]))
+    dist = -np.dot(v[j] - m, a)                                       # along the pin axis, outward
+    assert dist == pytest.approx(T + H, rel=MARKER_DEPTH_REL_TOL), dist
+    skin = sim.mesh.tets_skin
+    apex = np.hypot(*X0[skin].mean(axis=1)[:, :2].T) < 1.0
+    Ds = lambda Y: np.stack([Y[:, 1] - Y[:, 0], Y[:, 2] - Y[:, 0], Y[:, 3] - Y[:, 0]], axis=2)
+    F = (Ds(X[skin[apex]]) @ np.linalg.inv(Ds(X0[skin[apex]]))).mean(axis=0)
+    lam = np.linalg.svd(F, compute_uv=False)                          # λ1 >= λ2 in-plane stretches first
+    assert z_outer - z_under >= SKIN_KEEP_FRACTION * T / (lam[0] * lam[1]), (z_outer, z_under, lam)
+    assert z_outer == pytest.approx(-depth, abs=GAP_TOL_MM + 0.05)   # apex under the tip (+ sphere slope error)
+
+
+def test_sharp_tip_inverts_nothing_and_the_skin_reaches_the_tip():
+    d = load_design("hexagon127")
+    sim, stats, truth = _press(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=5 / 3), 3.0, SHARP_MESH)
+    assert stats.converged
+    for tets in (sim.mesh.tets_skin, sim.mesh.tets_gel):
+        assert _det_f(sim, tets).min() > 0.0
+    v = truth.skin_vertices_mm
+    assert v[np.argmin(np.hypot(v[:, 0], v[:, 1])), 2] == pytest.approx(-3.0, abs=GAP_TOL_MM + 0.05)
+
+
 @pytest.mark.slow
 def test_thicker_skin_conforms_less_to_a_sharp_gaussian():
+    """Both skins are pushed to the tip at the apex (contact); the thick one bridges the flanks: its mean
+    separation from the indenter within 2.5 mm of the axis is larger (by > 0.05 mm)."""
     ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=5 / 3)
-    peak = {}
+    sep = {}
     for name in ("hexagon127_skin050", "hexagon127_skin150"):
-        sim, _, truth = _press(load_design(name), ind, 3.0)
+        sim, _, truth = _press(load_design(name), ind, 3.0, SHARP_MESH)
         v = truth.skin_vertices_mm
-        peak[name] = v[np.argmin(np.hypot(v[:, 0], v[:, 1])), 2]
-    # the thin skin wraps the tip (peak pushed to ≈ -3 mm); the thick skin bridges it (shallower)
-    assert peak["hexagon127_skin050"] < peak["hexagon127_skin150"] - 0.05, peak
+        near = np.hypot(v[:, 0], v[:, 1]) < 2.5
+        sep[name] = float(np.mean(np.abs(sim.indenter_z_at(v[near, :2]) - v[near, 2])))
+    assert sep["hexagon127_skin050"] < sep["hexagon127_skin150"] - 0.05, sep
 
 
 def test_depth_limit_is_enforced():

@@ -9,8 +9,12 @@ Model (built in code with :class:`mujoco.MjSpec` from a :class:`~pipeline.design
   window. Each hexahedral cell is split into 6 Kuhn tetrahedra (conforming). Cells whose centre
   lies outside the radius are dropped, so the clamped rim is a staircase approximating the circle.
 * Two 3-D flexes share the vertices: ``skin`` (the top layer, thickness T, the skin's E and ν) and
-  ``gel`` (everything below, the gel's E and ν), Saint Venant–Kirchhoff, MuJoCo's discrete
-  integrator with the CG solver. Vertices on the bottom (bonded to the acrylic) and on the lateral
+  ``gel`` (everything below, the gel's E and ν), MuJoCo's stable Neo-Hookean model
+  (``elastic3d = 1``), the discrete integrator with the CG solver. St Venant–Kirchhoff (MuJoCo's
+  default) softens under compression and lets elements collapse: a Gaussian (σ² = 10) pressed 5 mm
+  inverted 302 gel and 6 skin tetrahedra (min det F = −1.15), squashed the skin to 0.4 T and left
+  the centre marker 1.08 mm below the outer skin instead of T + H = 2.5 mm; with stable
+  Neo-Hookean min det F = 0.58 (gel) / 0.86 (skin) and the gel flows sideways. Vertices on the bottom (bonded to the acrylic) and on the lateral
   boundary (clamped by the rigid mount) are fixed to the world body.
 * Domed designs: the mesh is shifted vertically by ``design.dome_z_mm`` (fully in the skin layer,
   tapering linearly to zero at the window), so the skin is the dome of constant vertical
@@ -48,11 +52,22 @@ from twin.truth import Truth
 
 __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm"]
 
-CONTACT_RADIUS_MM = 0.12     # vertex contact sphere; slope error r(1/cos θ - 1) < 0.05 mm up to 45°
-SETTLE_TOL_MM = 5e-3         # quasi-static: max vertex motion per step (mm) below this ...
-SETTLE_CONSECUTIVE = 3       # ... for this many consecutive steps
-SETTLE_MAX_STEPS = 300
-MAX_INCREMENT_MM = 0.05      # largest indenter move per physics step (keeps contact penetration << 0.2 mm cells)
+CONTACT_RADIUS_MM = 0.25     # vertex contact sphere > the 0.2 mm height-field cell, so it always spans several
+                             # prisms (0.12 mm let the stiff apex vertex slip through a prism wall: σ² = 10, 5 mm,
+                             # 0.75 mm inside); slope error r(1/cos θ - 1) <= 0.10 mm up to 45°
+ELASTIC3D_STABLE_NEO_HOOKEAN = 1   # MuJoCo flex ``elastic3d``: 0 = St Venant–Kirchhoff, 1 = stable Neo-Hookean
+SETTLE_TOL_MM = 5e-3         # quasi-static: the markers' mean position over the last ...
+SETTLE_CONSECUTIVE = 10      # ... this many steps differs from that over the previous as many by < tol (every
+                             # marker). Per-step vertex motion < 5e-3 mm for 3 steps stopped 0.11 mm short of
+                             # equilibrium (slow gel modes); markers also jitter ~0.003 mm a step in frictionless
+                             # contact (σ² = 10, 5 mm: noise floor 0.005-0.008 mm vs a 300-step run), which the
+                             # window means average out
+SETTLE_MAX_STEPS = 400
+MAX_INCREMENT_MM = 0.05      # largest indenter move per physics step while clear of the skin
+CONTACT_INCREMENT_MM = 0.02  # ... and while touching it: a contact vertex lags the (zero-velocity) mocap by
+                             # ~4 increments; at 0.05 mm that exceeded the 0.2 mm height-field cell and the
+                             # stable Neo-Hookean skin pushed vertices sideways through prism walls (σ² = 10,
+                             # 5 mm: apex 1.1 mm inside the indenter); at 0.02 mm: gap -0.007..0.043 mm
 PIN_ROTATION_RADIUS_FACTOR = 1.0  # pin rotation averaged over skin elements within 1 cell of its base
 DEPTH_MARGIN_MM = 1.0        # markers must stay this far above the window: depth <= G - H - margin
 _FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
@@ -68,6 +83,10 @@ class MeshSpec:
 
     fine_mm: float = 1.5
     fine_half_mm: float = 9.0
+    core_mm: float | None = None  # optional finer spacing about the axis (e.g. 0.75) for sharp tips: a σ² = 5/3
+    core_half_mm: float = 3.0     # Gaussian tip (curvature radius 0.33 mm) pokes between 1.5 mm vertices (apex
+                                  # skin 1.3 mm above the tip at 3 mm; 0.75 mm core: 0.12 mm) but the small
+                                  # frictionless core vertices chatter (~0.03 mm/step on a σ² = 50 press), so off
     growth: float = 1.5
     skin_layers: int = 1
     gel_levels_mm: tuple[float, ...] = (1.5, 4.0)   # depths below the skin underside; the window adds G
@@ -88,9 +107,13 @@ def max_depth_mm(design: SensorDesign) -> float:
     return design.optics.gel_thickness_mm - design.pins.height_mm - DEPTH_MARGIN_MM
 
 
-def _axis(fine_mm: float, fine_half_mm: float, growth: float, radius_mm: float) -> np.ndarray:
-    n = int(math.floor(fine_half_mm / fine_mm + 1e-9))
-    pos = list(np.arange(0, n + 1) * fine_mm)
+def _axis(fine_mm: float, fine_half_mm: float, growth: float, radius_mm: float,
+          core_mm: float | None = None, core_half_mm: float = 0.0) -> np.ndarray:
+    pos = [0.0]
+    if core_mm is not None and core_mm < fine_mm and core_half_mm > 0:
+        pos = list(np.arange(0, int(math.floor(core_half_mm / core_mm + 1e-9)) + 1) * core_mm)
+    while pos[-1] + fine_mm <= fine_half_mm + 1e-9:
+        pos.append(pos[-1] + fine_mm)
     step = fine_mm
     while pos[-1] < radius_mm - 1e-9:
         step *= growth
@@ -112,7 +135,7 @@ class _Mesh:
 def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
     """Tetrahedral mesh of the skin + gel disc (see module notes). Rest positions in the sensor frame."""
     T, G, R = design.skin.thickness_mm, design.optics.gel_thickness_mm, design.gel.radius_mm
-    ax = _axis(spec.fine_mm, spec.fine_half_mm, spec.growth, R)
+    ax = _axis(spec.fine_mm, spec.fine_half_mm, spec.growth, R, spec.core_mm, spec.core_half_mm)
     zs = [0.0] + [-T * (k + 1) / spec.skin_layers for k in range(spec.skin_layers)]
     zs += [-T - g for g in spec.gel_levels_mm if g < G - 1e-6] + [-T - G]
     zl = np.array(sorted(zs))                      # ascending: bottom first
@@ -258,6 +281,7 @@ class SkinSim:
             f.vert = vert.ravel().tolist()
             f.elem = tets.ravel().tolist()
             f.young, f.poisson = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
+            f.elastic3d = ELASTIC3D_STABLE_NEO_HOOKEAN
             f.damping = materials.RAYLEIGH_DAMPING_S
             f.contype = f.conaffinity = 0
             f.selfcollide = mj.mjtFlexSelf.mjFLEXSELF_NONE
@@ -346,26 +370,45 @@ class SkinSim:
         return motion
 
     def move_to(self, x_mm: float, y_mm: float, depth_mm: float, yaw_deg: float, *,
-                max_increment_mm: float = MAX_INCREMENT_MM, max_increment_deg: float = 1.0) -> int:
-        """Move the indenter in straight-line increments, one physics step each; returns steps."""
+                max_increment_mm: float = MAX_INCREMENT_MM, max_increment_deg: float = 1.0,
+                contact_increment_mm: float = CONTACT_INCREMENT_MM) -> int:
+        """Move the indenter in straight-line increments, one physics step each; returns steps.
+
+        Increments are ``max_increment_mm`` while nothing touches and ``contact_increment_mm``
+        (if smaller) while the indenter is in contact with the skin.
+        """
         a, b = np.array(self.pose), np.array([x_mm, y_mm, depth_mm, yaw_deg], float)
-        n = int(max(1, math.ceil(max(np.linalg.norm(b[:3] - a[:3]) / max_increment_mm,
-                                     abs(b[3] - a[3]) / max_increment_deg))))
-        for s in range(1, n + 1):
-            self.set_pose(*(a + (b - a) * s / n))
+        dist, ang = float(np.linalg.norm(b[:3] - a[:3])), abs(b[3] - a[3])
+        s, n = 0.0, 0
+        while s < 1.0 - 1e-12:
+            inc = min(max_increment_mm, contact_increment_mm) if self.data.ncon else max_increment_mm
+            ds = min(inc / dist if dist > 0 else 1.0, max_increment_deg / ang if ang > 0 else 1.0)
+            s = min(1.0, s + ds)
+            self.set_pose(*(a + (b - a) * s))
             self.step()
+            n += 1
         return n
 
     def settle(self, *, tol_mm: float = SETTLE_TOL_MM, consecutive: int = SETTLE_CONSECUTIVE,
                max_steps: int = SETTLE_MAX_STEPS) -> SettleStats:
-        """Step until the largest vertex motion per step stays below ``tol_mm`` for ``consecutive`` steps."""
+        """Step until the markers' mean over the last ``consecutive`` steps moved < ``tol_mm`` from the
+        mean over the ``consecutive`` steps before (every marker); ``last_motion_mm`` is that drift."""
         t0 = time.perf_counter()
-        calm, motion, n = 0, float("inf"), 0
-        while n < max_steps and calm < consecutive:
-            motion = self.step()
+        w = max(1, int(consecutive))
+        hist: list[np.ndarray] = []
+        motion, n = float("inf"), 0
+        while n < max_steps:
+            self.step()
             n += 1
-            calm = calm + 1 if motion < tol_mm else 0
-        return SettleStats(n, calm >= consecutive, motion, time.perf_counter() - t0)
+            hist.append(self.markers()[0])
+            if len(hist) > 2 * w:
+                hist.pop(0)
+            if len(hist) == 2 * w:
+                h = np.array(hist)
+                motion = float(np.max(np.linalg.norm(h[w:].mean(axis=0) - h[:w].mean(axis=0), axis=1)))
+                if motion < tol_mm:
+                    break
+        return SettleStats(n, motion < tol_mm, motion, time.perf_counter() - t0)
 
     def warnings(self) -> dict[str, int]:
         """MuJoCo warning counters that are non-zero (name → count)."""
