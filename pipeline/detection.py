@@ -507,19 +507,21 @@ def _measure_group(flat: np.ndarray, row: int, pad: int, cand: np.ndarray, param
     rv0 = np.where(inside, rv, np.float32(0.0))
     cnt = np.add.reduceat(inside.astype(np.int32), starts, axis=1)
     tot = np.add.reduceat(rv0, starts, axis=1, dtype=np.float64)
-    ring_hi = np.where(cnt > 0, tot / np.maximum(cnt, 1), -np.inf).max(axis=1)
+    sectors = np.where(cnt > 0, tot / np.maximum(cnt, 1), -np.inf) - bg[:, None]
     sat = (rv >= sat_thr).sum(1) / np.maximum(n_in, 1)
     cv = np.take(flat, b[:, None] + core)
     peak = cv.max(axis=1).astype(np.float64)
     core_sat = (cv >= sat_thr).mean(axis=1)
-    return xy, peak - bg, ring_hi - bg, sat, core_sat
+    return xy, peak - bg, sectors, sat, core_sat
 
 
 def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarray, params: DetectionParams):
     """Sub-pixel centroids and local photometry per candidate.
 
-    Returns ``xy`` (N, 2) refined centres, ``contrast`` (N,) peak minus ring median, ``ring_spread``
-    (N,) brightest ring sector minus ring median, ``sat`` (N,) saturated fraction of the ring,
+    Returns ``xy`` (N, 2) refined centres, ``contrast`` (N,) peak minus ring median, ``sectors``
+    (N, 8) mean of each angular ring sector minus the ring median (-inf for a sector wholly outside
+    the image; sector ``k`` spans angles ``-pi + k pi/4 .. -pi + (k+1) pi/4`` of ``atan2(dv, du)``),
+    ``sat`` (N,) saturated fraction of the ring,
     ``core_sat`` (N,) saturated fraction of the blob core.
     The ring spans ``1.25 r + 1 .. 1.25 r + 2.5`` px (r = sqrt(2) sigma with the continuous scale):
     just outside the marker edge and, on the densest real frames (r ~4.7 px, pitch 16.8 px), inside
@@ -537,12 +539,113 @@ def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarra
     # grey level k is stored as float32(k / 255): compare half a level below to be exact
     sat_thr = np.float32((params.saturation_level - 0.5) / 255.0)
     xy = np.empty((len(cand), 2))
-    contrast, spread, sat, core_sat = (np.empty(len(cand)) for _ in range(4))
+    sectors = np.empty((len(cand), _SECTORS))
+    contrast, sat, core_sat = (np.empty(len(cand)) for _ in range(3))
     for s in np.unique(cand[:, 5]):
         g = np.nonzero(cand[:, 5] == s)[0]
-        xy[g], contrast[g], spread[g], sat[g], core_sat[g] = _measure_group(flat, w + 2 * pad, pad, cand[g],
-                                                                            params, sat_thr)
-    return xy, contrast, spread, sat, core_sat
+        xy[g], contrast[g], sectors[g], sat[g], core_sat[g] = _measure_group(flat, w + 2 * pad, pad, cand[g],
+                                                                             params, sat_thr)
+    return xy, contrast, sectors, sat, core_sat
+
+
+def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: np.ndarray,
+                 examine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Brightest ring sector (minus the ring median) per candidate, not counting sectors that look at
+    a touching marker; and whether the candidate touches one.
+
+    A marker squeezed against its neighbours (pins crowding under a steep flank) has bright ring
+    sectors too, but that light is another marker's: sectors whose centre direction lies within
+    45 deg of a ``peers`` candidate (one that passed the contrast, shape, saturation and upper size
+    tests) closer than the two rings' reach (``1.25 r + 2.5 + r_peer``) are left out. Glare stays
+    rejected: a bright region that is not itself a marker-sized blob explains no sector. At least half
+    the sectors must remain, else the candidate keeps its plain brightest sector. Only candidates with
+    ``examine`` set are looked at (the others keep their plain spread and are not ``crowded``).
+
+    Returns
+    -------
+    spread : (N,) brightest unexplained sector minus the ring median
+    crowded : (N,) bool, a peer touches the candidate's ring
+    """
+    spread = sectors.max(axis=1)
+    crowded = np.zeros(len(xy), dtype=bool)
+    idx = np.nonzero(peers)[0]
+    if len(idx) < 2 or not examine.any():
+        return spread, crowded
+    tree = cKDTree(xy[idx])
+    reach = _RING_IN * radius + 2.5
+    centres = -np.pi + (np.arange(_SECTORS) + 0.5) * (2 * np.pi / _SECTORS)
+    for i in np.nonzero(examine)[0]:
+        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
+        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
+        if not near:
+            continue
+        crowded[i] = True
+        d = xy[near] - xy[i]
+        ang = np.arctan2(d[:, 1], d[:, 0])
+        off = np.abs((centres[None, :] - ang[:, None] + np.pi) % (2 * np.pi) - np.pi)
+        masked = (off < np.pi / 4).any(axis=0)
+        if masked.sum() <= _SECTORS // 2:
+            spread[i] = sectors[i, ~masked].max()
+    return spread, crowded
+    tree = cKDTree(xy[idx])
+    reach = _RING_IN * radius + 2.5 + radius.max()
+    centres = -np.pi + (np.arange(_SECTORS) + 0.5) * (2 * np.pi / _SECTORS)
+    for i in np.nonzero(spread > limit)[0]:
+        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i]) if idx[j] != i]
+        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= _RING_IN * radius[i] + 2.5 + radius[j]]
+        if not near:
+            continue
+        d = xy[near] - xy[i]
+        ang = np.arctan2(d[:, 1], d[:, 0])
+        off = np.abs((centres[None, :] - ang[:, None] + np.pi) % (2 * np.pi) - np.pi)
+        masked = (off < np.pi / 4).any(axis=0)
+        if masked.sum() <= _SECTORS // 2:
+            spread[i] = sectors[i, ~masked].max()
+    return spread
+
+
+def _split_centroids(grey_f: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
+                     peers: np.ndarray, params: DetectionParams) -> np.ndarray:
+    """Centroids of touching markers with each neighbour's light excluded.
+
+    The plain centroid window (``centroid_radius_factor`` x r) of a marker squeezed against another
+    takes in the neighbour's edge and is pulled toward it (measured ~1.5 px for a 1 px gap). For the
+    candidates in ``which`` the window is split Voronoi-wise: pixels nearer to a ``peers`` centre than
+    to this one are left out; background = median of the window's remaining pixels outside 1.25 r.
+    Two re-centred passes, as for isolated markers. Returns the updated (N, 2) centres.
+    """
+    out = xy.copy()
+    if not which.any():
+        return out
+    idx = np.nonzero(peers)[0]
+    tree = cKDTree(xy[idx])
+    h, w = grey_f.shape
+    for i in np.nonzero(which)[0]:
+        r = float(radius[i])
+        r_win = params.centroid_radius_factor * r + 0.5
+        nb = [idx[j] for j in tree.query_ball_point(xy[i], 2 * r_win) if idx[j] != i]
+        c = xy[i].copy()
+        for _ in range(max(1, params.centroid_iterations)):
+            x0, x1 = int(max(0, np.floor(c[0] - r_win))), int(min(w - 1, np.ceil(c[0] + r_win)))
+            y0, y1 = int(max(0, np.floor(c[1] - r_win))), int(min(h - 1, np.ceil(c[1] + r_win)))
+            gx, gy = np.meshgrid(np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64))
+            d2 = (gx - c[0]) ** 2 + (gy - c[1]) ** 2
+            own = d2 <= r_win * r_win
+            for j in nb:
+                own &= d2 < (gx - xy[j, 0]) ** 2 + (gy - xy[j, 1]) ** 2
+            v = grey_f[y0:y1 + 1, x0:x1 + 1].astype(np.float64)
+            ring = own & (d2 >= (_RING_IN * r) ** 2)
+            bg = float(np.median(v[ring])) if ring.any() else 0.0
+            wts = np.where(own, np.maximum(v - bg, 0.0), 0.0)
+            tot = wts.sum()
+            if tot <= 0:
+                break
+            new = np.array([(wts * gx).sum() / tot, (wts * gy).sum() / tot])
+            if np.hypot(*(new - xy[i])) > 0.5 * r + 1.0:
+                break
+            c = new
+        out[i] = c
+    return out
 
 
 def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionParams()) -> Blobs:
@@ -583,19 +686,29 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
     cand = _suppress(cand, params.min_separation_px)
     if len(cand) == 0:
         return Blobs.empty()
-    xy, contrast, ring_spread, sat, core_sat = _refine_and_measure(grey, grey_f, cand, params)
+    xy, contrast, sectors, sat, core_sat = _refine_and_measure(grey, grey_f, cand, params)
     keep = contrast >= params.min_contrast
     if params.rejections:
-        keep &= ring_spread <= params.isolation * np.maximum(contrast, 1e-6)
         keep &= cand[:, 4] <= params.max_elongation
         keep &= sat <= params.max_saturated_fraction
-        if keep.sum() >= 5:
-            # outliers against the typical marker of this image: size, and saturation where
-            # markers are not saturated (LED glare is; exposure-clipped markers all are)
-            med = float(np.median(cand[keep, 2]))
-            keep &= (cand[:, 2] <= params.max_size_ratio * med) & (cand[:, 2] >= med / params.max_size_ratio)
+        limit = params.isolation * np.maximum(contrast, 1e-6)
+        isolated = sectors.max(axis=1) <= limit
+        if (keep & isolated).sum() >= 5:
+            # outliers against the typical marker of this image: size (a marker squeezed between
+            # touching neighbours reads smaller: down to 1/ratio**2), and saturation where markers
+            # are not saturated (LED glare is; exposure-clipped markers all are)
+            med = float(np.median(cand[keep & isolated, 2]))
+            big_ok = cand[:, 2] <= params.max_size_ratio * med
+            small = cand[:, 2] < med / params.max_size_ratio
+            spread, crowded = _ring_spread(xy, np.sqrt(2) * cand[:, 5], sectors, keep & big_ok,
+                                           keep & (~isolated | small))
+            keep &= (spread <= limit) & big_ok
+            keep &= ~small | (crowded & (cand[:, 2] >= med / params.max_size_ratio ** 2))
+            xy = _split_centroids(grey_f, xy, np.sqrt(2) * cand[:, 5], keep & crowded, keep & big_ok, params)
             if np.median(core_sat[keep]) < 0.5:
                 keep &= core_sat <= 0.3
+        else:
+            keep &= isolated
     h, w = grey.shape
     b = params.border_px
     keep &= (xy[:, 0] >= b) & (xy[:, 0] <= w - 1 - b) & (xy[:, 1] >= b) & (xy[:, 1] <= h - 1 - b)

@@ -403,6 +403,40 @@ def _verify_and_grow(pts: np.ndarray, ids: np.ndarray, active: np.ndarray, xy_d:
     return removed
 
 
+#: A ring of the design's size but irregular spacing (a deformed skin) is rotated onto the design by
+#: prediction from the rings inside it: the best cyclic shift must fit with a mean distance below
+#: this many local pitches, and the runner-up shift must fit at least SHIFT_MARGIN x worse.
+SHIFT_FIT = 0.45
+SHIFT_MARGIN = 2.0
+
+
+def _shift_by_prediction(members: np.ndarray, d_ids: np.ndarray, pts: np.ndarray, ids: np.ndarray,
+                         xy_d: np.ndarray, pitch_mm: float) -> int | None:
+    """Cyclic shift coding a complete ring (``members`` sorted CCW) whose gaps are irregular.
+
+    The ring's cyclic order is topological and survives deformation; only its start is unknown. Each
+    design slot of the ring is predicted from a local affine fit to the coded markers (the rings
+    inside, already coded), and the shift whose found points lie nearest the predictions wins when
+    it is unambiguous (:data:`SHIFT_FIT`, :data:`SHIFT_MARGIN`). Returns None otherwise.
+    """
+    coded = np.nonzero(ids >= 0)[0]
+    if len(coded) < 4:
+        return None
+    pred, sc = _affine_predict(xy_d[d_ids], xy_d[ids[coded]], pts[coded])
+    n = len(d_ids)
+    shifts = _SHIFTS.get(n)
+    if shifts is None:
+        shifts = _SHIFTS[n] = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
+    p = pts[members]
+    dist = np.linalg.norm(p[shifts] - pred[None, :, :], axis=2) / (pitch_mm * np.maximum(sc, 1e-9))[None, :]
+    cost = dist.mean(axis=1)
+    order = np.argsort(cost)
+    best = int(order[0])
+    if cost[best] > SHIFT_FIT or (n > 1 and cost[order[1]] < SHIFT_MARGIN * cost[best]):
+        return None
+    return best
+
+
 def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
     """DTRC ring coding of one view.
 
@@ -472,6 +506,14 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
                     if spread < math.pi / len(d_ids):
                         ids[np.concatenate((members[shift:], members[:shift]))] = d_ids
                         theta = theta_new
+                        done = True
+                if not done:
+                    shift = _shift_by_prediction(members, d_ids, pts, ids, xy_d, design.pattern.separation_mm)
+                    if shift is not None:
+                        ids[np.concatenate((members[shift:], members[:shift]))] = d_ids
+                        theta += float(np.angle(np.mean(np.exp(1j * (np.roll(phi, -shift) - d_ang - theta)))))
+                        failed = True       # verified against its neighbours below
+                        msgs.append(f"ring {r} (layer {layer}): irregular, coded by prediction from the rings inside")
                         done = True
         if not done:
             failed = True

@@ -107,7 +107,8 @@ def refract_stack_rays(origins: np.ndarray, dirs: np.ndarray, design: SensorDesi
 
 
 def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: SensorDesign, *,
-                  n_gel: float | None = None, n_acrylic: float | None = None) -> MarkerCloud:
+                  n_gel: float | None = None, n_acrylic: float | None = None,
+                  return_gap: bool = False) -> MarkerCloud | tuple[MarkerCloud, np.ndarray]:
     """True marker positions from matched pixels by exact ray tracing through the flat stack.
 
     Parameters
@@ -124,6 +125,10 @@ def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: Sens
     MarkerCloud
         Closest-approach midpoints of the two refracted rays in the gel, sensor frame, mm. Markers
         whose rays do not reach the gel are dropped.
+    gap : (N,) float64, only with ``return_gap``
+        Closest-approach distance of the two refracted rays of each kept marker (mm): ~0 for a
+        correct left/right pair (pixel noise), large for two different markers (see
+        :data:`pipeline.runner.STEREO_GATE_MM`).
 
     Notes
     -----
@@ -133,16 +138,18 @@ def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: Sens
     are not corrected.
     """
     if len(matches) == 0:
-        return MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
+        empty = MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
+        return (empty, np.empty(0)) if return_gap else empty
     sfl, sfr = camera_poses(calib)
     o1, d1 = pixels_to_rays(matches.left_px, calib.K1, calib.D1, sfl)
     o2, d2 = pixels_to_rays(matches.right_px, calib.K2, calib.D2, sfr)
     p1, g1 = refract_stack_rays(o1, d1, design, n_gel=n_gel, n_acrylic=n_acrylic)
     p2, g2 = refract_stack_rays(o2, d2, design, n_gel=n_gel, n_acrylic=n_acrylic)
     with np.errstate(invalid="ignore"):
-        xyz, _gap = closest_points(p1, g1, p2, g2)
+        xyz, gap = closest_points(p1, g1, p2, g2)
     ok = np.all(np.isfinite(xyz), axis=1)
-    return MarkerCloud(matches.ids[ok], xyz[ok])
+    cloud = MarkerCloud(matches.ids[ok], xyz[ok])
+    return (cloud, gap[ok]) if return_gap else cloud
 
 
 def correct_linear(cloud: MarkerCloud, reference: MarkerCloud, n_gel: float, design: SensorDesign) -> MarkerCloud:

@@ -27,6 +27,13 @@ __all__ = ["Reconstructor", "FrameResult", "reconstruct", "RunnerError", "REFRAC
 
 REFRACTION_MODES = ("exact", "linear")
 TRACKERS = ("dtrc", "nn")
+#: Stereo check: a left/right pair is one marker only if its two rays, refracted through the stack,
+#: pass within this distance (mm) of each other. Correct pairs: <= 0.01 mm on twin frames (pixel
+#: noise); two different markers: mostly 0.2-6 mm (measured on a crowded 217-marker terrain tap).
+STEREO_GATE_MM = 0.15
+#: ... and the triangulated marker lies in the gel: between the gel/acrylic interface and this far
+#: (mm) beyond its rest depth (the skin bulges outward only slightly beside an indentation).
+STEREO_BULGE_MM = 1.0
 
 
 class RunnerError(UserError, ValueError):
@@ -125,6 +132,7 @@ class Reconstructor:
         self.with_height_map = with_height_map
         self.height_map_step_mm = height_map_step_mm
         self._all_ids = np.arange(design.marker_count, dtype=np.int64)
+        self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
         if isinstance(reference, MarkerCloud):
             self._reference = reference
@@ -138,6 +146,26 @@ class Reconstructor:
     def reference(self) -> MarkerCloud | None:
         """Apparent cloud of the undeformed reference frame (linear model), once known."""
         return self._reference
+
+    def _stereo_check(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray]:
+        """Drop pairs that cannot be one marker: refracted rays more than :data:`STEREO_GATE_MM` apart,
+        or a 3-D point outside the gel (closer than the acrylic, or more than :data:`STEREO_BULGE_MM`
+        beyond the rest marker depth). Catches identity errors that differ between the two views
+        (e.g. a ring coded with different shifts); returns the kept matches and the rejected ids."""
+        if len(matches) == 0:
+            return matches, np.empty(0, np.int64)
+        cloud, gap = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel if self.refraction == "exact"
+                                   else None, return_gap=True)
+        z = cloud.xyz_mm[:, 2]
+        rest_z = self._rest_z[cloud.ids]
+        ok = (gap <= STEREO_GATE_MM) & (z >= self.design.gel_acrylic_z_mm) & (z <= rest_z + STEREO_BULGE_MM)
+        good = np.isin(matches.ids, cloud.ids[ok])
+        if good.all():
+            return matches, np.empty(0, np.int64)
+        rejected = matches.ids[~good]
+        kept = MarkerMatches(matches.ids[good], matches.left_px[good], matches.right_px[good],
+                             np.union1d(matches.unmatched_ids, rejected))
+        return kept, rejected
 
     def _match(self, frame: StereoFrame) -> tuple[MarkerMatches, tuple[int, int], dict[str, float]]:
         t0 = time.perf_counter()
@@ -156,6 +184,12 @@ class Reconstructor:
         t_start = time.perf_counter()
         notes: list[str] = []
         matches, n_blobs, timings = self._match(frame)
+        t = time.perf_counter()
+        matches, rejected = self._stereo_check(matches)
+        timings["stereo_check"] = 1e3 * (time.perf_counter() - t)
+        if len(rejected):
+            notes.append(f"stereo check rejected {len(rejected)} left/right pair(s) (ids "
+                         + ",".join(map(str, rejected[:12])) + ("..." if len(rejected) > 12 else "") + ")")
         t = time.perf_counter()
         apparent = triangulate(matches, self.calib)
         timings["triangulate"] = 1e3 * (time.perf_counter() - t)

@@ -169,3 +169,28 @@ def test_real_frames_with_narrowed_scales_keep_count_and_reject_glare(path):
     assert 325 <= len(blobs) <= 335
     ij = np.rint(blobs.xy_px).astype(int)
     assert not _glare_mask(grey)[ij[:, 1], ij[:, 0]].any()
+
+
+def test_touching_markers_are_found_and_glare_next_to_a_marker_is_not():
+    """Pins converging under a steep flank bring markers into contact (twin terrain tap: three in a row,
+    ~1 diameter apart). Their ring sectors facing each other are lit by the neighbour, which is a
+    marker: all must be found. A bright region that is not a marker-sized blob still vetoes."""
+    rng = np.random.default_rng(3)
+    img = np.full((200, 260), 12, np.uint8)
+    r = 5.0
+    lattice = [(40 + 28 * i, 40 + 28 * j) for i in range(7) for j in range(5) if not (i in (3, 4) and j in (2,))]
+    touching = [(110.0, 96.0), (120.0, 100.5), (130.0, 105.0)]      # centre distance 11 px: a 1 px dark gap
+    for (x, y) in lattice + touching:
+        cv2.circle(img, (int(round(x * 16)), int(round(y * 16))), int(r * 16), 215, -1, cv2.LINE_AA, shift=4)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    img = np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    blobs = detect_markers(img)
+    d, _ = cKDTree(blobs.xy_px).query(np.array(touching + lattice, float))
+    assert np.all(d[:3] < 0.5), f"touching markers missed/misplaced: {d[:3]}"
+    assert np.all(d < 1.5) and len(blobs) == len(lattice) + 3
+    # a marker touching a large saturated glare patch stays rejected
+    glare = img.copy()
+    cv2.circle(glare, (230, 30), 18, 255, -1)
+    cv2.circle(glare, (207, 30), int(r), 215, -1)
+    b2 = detect_markers(glare)
+    assert cKDTree(b2.xy_px).query([207.0, 30.0])[0] > 3.0

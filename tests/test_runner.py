@@ -200,3 +200,35 @@ def test_reconstruct_calls_on_result_for_every_frame(tmp_path):
                           on_result=lambda f, r: seen.append((f, r.n_matched)))
     assert [n for _, n in seen] == [127, 127] and seen[0][0] is frames[0]
     assert summary["frames"] == 2
+
+
+def test_stereo_check_rejects_pairs_that_cannot_be_one_marker():
+    """Identity errors that differ between the views must come out unmatched, not as wrong 3-D points.
+    Here four markers take, in the right view only, the pixel of their neighbour one row over
+    (a pitch across the baseline): the refracted rays then miss each other by ~a pitch against
+    <= 0.01 mm for true pairs (gate 0.15 mm). Limitation (stated in the runner): a swap ALONG the
+    baseline keeps the rays meeting and is caught only when the depth it implies leaves the gel."""
+    from pipeline.runner import STEREO_GATE_MM
+    from pipeline.types import MarkerMatches
+
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    truth = gaussian_press_markers(design, 2.0, sigma_mm=4.0)
+    rec = Reconstructor(design, calib)
+    matches, _, _ = rec._match(synth_stereo_frame(design, calib, truth))
+    assert len(matches) == design.marker_count
+    rest = design.rest_markers_mm()
+    right = matches.right_px.copy()
+    chosen = [10, 40, 70, 100]
+    for i in chosen:                                  # the design neighbour most nearly straight across in y
+        d = rest[:, :2] - rest[i, :2]
+        dist = np.hypot(*d.T)
+        near = (dist > 0.5 * design.pattern.separation_mm) & (dist < 1.5 * design.pattern.separation_mm)
+        j = np.flatnonzero(near)[np.argmax(np.abs(d[near, 1]) - np.abs(d[near, 0]))]
+        right[np.searchsorted(matches.ids, i)] = matches.right_px[np.searchsorted(matches.ids, j)]
+    kept, rejected = rec._stereo_check(MarkerMatches(matches.ids, matches.left_px, right))
+    assert set(rejected.tolist()) == set(chosen)
+    assert set(chosen) <= set(kept.unmatched_ids.tolist()) and len(kept) == design.marker_count - len(chosen)
+    assert STEREO_GATE_MM < 0.5 * design.pattern.separation_mm
+    kept_all, none = rec._stereo_check(matches)       # true pairs all pass
+    assert len(none) == 0 and len(kept_all) == design.marker_count
