@@ -508,12 +508,19 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
                         theta = theta_new
                         done = True
                 if not done:
+                    # complete but irregular (a deformed skin): the cyclic order still holds; find the
+                    # start by prediction from the rings inside, or for the first ring (only the centre
+                    # is coded) by the angular fit alone; verified against the neighbours below
+                    how = "prediction from the rings inside"
                     shift = _shift_by_prediction(members, d_ids, pts, ids, xy_d, design.pattern.separation_mm)
+                    if shift is None and int((ids >= 0).sum()) < 4:
+                        s_ang, _, spread = _shift_code(phi, d_ang, theta)
+                        shift, how = (s_ang, "its angles") if spread < math.pi / len(d_ids) else (None, "")
                     if shift is not None:
                         ids[np.concatenate((members[shift:], members[:shift]))] = d_ids
                         theta += float(np.angle(np.mean(np.exp(1j * (np.roll(phi, -shift) - d_ang - theta)))))
-                        failed = True       # verified against its neighbours below
-                        msgs.append(f"ring {r} (layer {layer}): irregular, coded by prediction from the rings inside")
+                        failed = True
+                        msgs.append(f"ring {r} (layer {layer}): irregular, coded by {how}")
                         done = True
         if not done:
             failed = True

@@ -112,13 +112,18 @@ def surface_grid(surface, truth, radius_mm: float, step_mm: float = 0.5) -> dict
     The reconstruction is resampled with the pipeline's own :func:`pipeline.surface.height_map`
     (what a user gets); truth is interpolated from the twin's skin mesh and indenter height map.
     Returns flat arrays ``x, y, r`` (mm) and ``z_rec, z_skin, z_ind`` (mm, NaN where undefined).
+    ``surface`` may be None (the pipeline identified too few markers for a surface): ``z_rec`` is
+    then all NaN, so the frame counts as not reconstructed rather than aborting the experiment.
     """
     from pipeline.surface import height_map
 
     ax = np.arange(-radius_mm, radius_mm + 1e-9, step_mm)
-    hm = height_map(surface, ax, ax, mask_radius_mm=radius_mm)
     gx, gy = np.meshgrid(ax, ax)
     xy = np.column_stack([gx.ravel(), gy.ravel()])
+    if surface is None:
+        z_rec = np.full(len(xy), np.nan)
+    else:
+        z_rec = np.asarray(height_map(surface, ax, ax, mask_radius_mm=radius_mm).z_mm).ravel()
     return {"x": xy[:, 0], "y": xy[:, 1], "r": np.hypot(xy[:, 0], xy[:, 1]),
-            "z_rec": np.asarray(hm.z_mm).ravel(), "z_skin": true_skin_height(truth, xy),
+            "z_rec": z_rec, "z_skin": true_skin_height(truth, xy),
             "z_ind": interp_heightmap(truth.indenter, xy)}

@@ -43,6 +43,7 @@ def _stag(sep: float) -> str:
     "sine",
     tags=("quick", "paper"),
     metrics={
+        "matched_fraction_min": "1",
         "upper_rms_mm": "mm",
         "lowest_point_rms_mm": "mm",
         **{f"upper_rms_mm_{_stag(s)}_{_otag(k)}": "mm" for s in SEP_DESIGNS for k in range(len(OMEGAS))},
@@ -81,7 +82,8 @@ def run(ctx: Context) -> Result:
                 valley = np.isfinite(phase) & (phase > 1 - VALLEY_BAND)
                 e = g["z_rec"] - zi
                 gap = zi - g["z_skin"]          # >= 0: how far the twin's skin stays from the indenter
-                cell = {"design": design.name, "separation_mm": design.pattern.separation_mm, "omega_index": k,
+                cell = {"design": design.name, "matched_fraction": fr.n_matched / design.marker_count,
+                        "separation_mm": design.pattern.separation_mm, "omega_index": k,
                         "omega_rad_per_mm": w, "yaw_deg": yaw, "upper_rms_mm": rms(e[upper]),
                         "lowest_point_rms_mm": rms(e[valley]),
                         "valley_gap_mm": float(np.nanmean(gap[valley])) if np.any(valley) else float("nan"),
@@ -92,6 +94,7 @@ def run(ctx: Context) -> Result:
                 bar.update()
     bar.close()
     out.tables["cells"] = rows
+    out.metric("matched_fraction_min", float(min(r["matched_fraction"] for r in rows)), "1")
 
     def mean(key, **sel):
         v = [r[key] for r in rows if all(r[a] == b for a, b in sel.items())]
