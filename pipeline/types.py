@@ -309,6 +309,18 @@ class StereoCalibration:
             fs.write("sensor_from_left", self.sensor_from_left)
             fs.write("rms_px", float(self.rms_px) if math.isfinite(self.rms_px) else -1.0)
             fs.write("units", "mm")
+            # derived, for OpenCV users (as OpenCV's stereo_calib sample writes them); not read back:
+            # essential / fundamental matrices and the rectification (stereoRectify, zero disparity, alpha 0)
+            tx = np.array([[0, -self.T[2], self.T[1]], [self.T[2], 0, -self.T[0]], [-self.T[1], self.T[0], 0]])
+            E = tx @ self.R
+            F = np.linalg.inv(self.K2).T @ E @ np.linalg.inv(self.K1)
+            fs.write("E", E)
+            fs.write("F", F / F[2, 2] if abs(F[2, 2]) > 1e-12 else F)
+            R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(self.K1, self.D1, self.K2, self.D2, tuple(self.image_size),
+                                                        self.R, self.T.reshape(3, 1),
+                                                        flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
+            for key, val in (("R1", R1), ("R2", R2), ("P1", P1), ("P2", P2), ("Q", Q)):
+                fs.write(key, val)
         finally:
             fs.release()
 

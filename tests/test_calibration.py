@@ -100,6 +100,21 @@ def test_calibration_yaml_round_trip(tmp_path, truth):
     truth.save_yaml(tmp_path / "c.yaml")
     back = StereoCalibration.load_yaml(tmp_path / "c.yaml")
     assert np.allclose(back.K1, truth.K1) and np.allclose(back.sensor_from_left, truth.sensor_from_left)
+    # the OpenCV extras an OpenCV user expects (stereo_calib sample keys): E, F, R1, R2, P1, P2, Q
+    fs = cv2.FileStorage(str(tmp_path / "c.yaml"), cv2.FILE_STORAGE_READ)
+    E, F, P1, P2, Q = (fs.getNode(k).mat() for k in ("E", "F", "P1", "P2", "Q"))
+    fs.release()
+    rect = rectification(truth, with_maps=False)
+    assert np.allclose(P2, rect.P2) and np.allclose(Q, rect.Q) and np.allclose(P1, rect.P1)
+    assert abs(-P2[0, 3] / P2[0, 0] - truth.baseline_mm) < 1e-6       # rectified baseline, mm
+    # epipolar constraint on a pair of normalised (undistorted) views of one 3-D point
+    X = np.array([1.0, -2.0, 30.0])
+    x1 = np.append(X[:2] / X[2], 1.0)
+    X2 = truth.R @ X + truth.T
+    x2 = np.append(X2[:2] / X2[2], 1.0)
+    assert abs(x2 @ E @ x1) < 1e-9
+    u1, u2 = truth.K1 @ x1, truth.K2 @ x2
+    assert abs(u2 @ F @ u1) / np.linalg.norm(F) < 1e-6
 
 
 def test_stereo_corner_order_is_consistent_for_boards_turned_near_90_degrees(truth):
