@@ -571,6 +571,22 @@ def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers:
     idx = np.nonzero(peers)[0]
     if len(idx) < 2 or not examine.any():
         return spread, crowded
+    tree = cKDTree(xy[idx])
+    reach = _RING_IN * radius + 2.5
+    centres = -np.pi + (np.arange(_SECTORS) + 0.5) * (2 * np.pi / _SECTORS)
+    for i in np.nonzero(examine)[0]:
+        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
+        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
+        if not near:
+            continue
+        crowded[i] = True
+        d = xy[near] - xy[i]
+        ang = np.arctan2(d[:, 1], d[:, 0])
+        off = np.abs((centres[None, :] - ang[:, None] + np.pi) % (2 * np.pi) - np.pi)
+        masked = (off < np.pi / 4).any(axis=0)
+        if masked.sum() <= _SECTORS // 2:
+            spread[i] = sectors[i, ~masked].max()
+    return spread, crowded
 
 
 def _split_centroids(grey_f: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
