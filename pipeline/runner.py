@@ -20,7 +20,7 @@ from pipeline.errors import UserError
 from pipeline.refraction import correct_exact, correct_linear
 from pipeline.surface import MIN_MARKERS, height_map, skin_surface
 from pipeline.triangulation import triangulate
-from pipeline.types import (HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
+from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
 
 __all__ = ["Reconstructor", "FrameResult", "reconstruct", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
@@ -107,6 +107,10 @@ class Reconstructor:
     reference : StereoFrame or MarkerCloud, optional
         Undeformed frame (or its apparent cloud) for the linear model; default: the first processed frame.
     detection_params : DetectionParams, optional
+        Fixed detection parameters. Default: the full scale space for the first frame that shows at
+        least half the design's markers in both views, then the scale space narrowed to the marker
+        radius measured on it (:meth:`DetectionParams.for_marker_radius`; ~40 % less detection time,
+        accuracy unchanged: tests/test_detection.py).
     with_height_map : bool
         Also resample the skin on a grid (``height_map_step_mm``) each frame.
     """
@@ -127,6 +131,7 @@ class Reconstructor:
         self.n_gel = n_gel
         self._detect = detection.detect_markers
         self._detection_params = detection_params if detection_params is not None else detection.DetectionParams()
+        self._narrow = detection_params is None       # narrow the scales once the marker size is known
         self._match_stereo = dtrc.match_stereo
         self._tracker = dtrc.DTRCTracker(design) if tracker == "dtrc" else dtrc.NearestNeighbourTracker(design)
         self.with_height_map = with_height_map
@@ -171,6 +176,13 @@ class Reconstructor:
         t0 = time.perf_counter()
         left = self._detect(frame.left, params=self._detection_params)
         right = self._detect(frame.right, params=self._detection_params)
+        if self._narrow and min(len(left), len(right)) >= self.design.marker_count // 2:
+            from pipeline.detection import marker_radius_px
+
+            both = Blobs(np.vstack([left.xy_px, right.xy_px]), np.concatenate([left.sigma_px, right.sigma_px]),
+                         np.concatenate([left.response, right.response]))
+            self._detection_params = self._detection_params.for_marker_radius(marker_radius_px(both))
+            self._narrow = False
         t1 = time.perf_counter()
         matches = self._tracker.update(left, right)
         t2 = time.perf_counter()
