@@ -97,8 +97,9 @@ def run(ctx: Context) -> Result:
     out.metric("matched_fraction_min", float(min(r["matched_fraction"] for r in rows)), "1")
 
     def mean(key, **sel):
-        v = [r[key] for r in rows if all(r[a] == b for a, b in sel.items())]
-        return float(np.nanmean(v)) if v else float("nan")
+        v = np.array([r[key] for r in rows if all(r[a] == b for a, b in sel.items())], dtype=float)
+        v = v[np.isfinite(v)]           # cells with no reconstruction (too few markers) are NaN
+        return float(v.mean()) if len(v) else float("nan")
 
     out.metric("upper_rms_mm", mean("upper_rms_mm"), "mm")
     out.metric("lowest_point_rms_mm", mean("lowest_point_rms_mm"), "mm")
