@@ -63,11 +63,21 @@ SETTLE_CONSECUTIVE = 10      # ... this many steps differs from that over the pr
                              # contact (σ² = 10, 5 mm: noise floor 0.005-0.008 mm vs a 300-step run), which the
                              # window means average out
 SETTLE_MAX_STEPS = 400
-MAX_INCREMENT_MM = 0.05      # largest indenter move per physics step while clear of the skin
-CONTACT_INCREMENT_MM = 0.02  # ... and while touching it: a contact vertex lags the (zero-velocity) mocap by
-                             # ~4 increments; at 0.05 mm that exceeded the 0.2 mm height-field cell and the
-                             # stable Neo-Hookean skin pushed vertices sideways through prism walls (σ² = 10,
-                             # 5 mm: apex 1.1 mm inside the indenter); at 0.02 mm: gap -0.007..0.043 mm
+MAX_INCREMENT_MM = 0.1       # largest indenter move per physics step while clear of the skin
+CONTACT_INCREMENT_MM = 0.06  # ... and while touching it. A contact vertex lags the (zero-velocity) mocap by about
+                             # 4 ζ² increments (the steady ramp error of the contact's reference dynamics: time
+                             # constant 2 dt, the smallest MuJoCo allows, damping ratio ζ), more where the skin is
+                             # stiff (near the clamped rim). A lag beyond the 0.2 mm height-field cell lets the stable
+                             # Neo-Hookean skin push vertices sideways through prism walls (ζ = 1, 0.05 mm, σ² = 10:
+                             # apex 1.1 mm inside; ζ = 0.7, 0.04 mm, a sine ω = π/15 pressed across the rim: 2.3 mm).
+                             # ζ = 0.5 (dead-beat in theory) chattered and never settled.
+PENETRATION_LIMIT_MM = 0.08 # so the robot waits while any vertex lags deeper than this (the lag ζ = 1 at 0.02 mm had,
+                             # where it was validated): σ² = 10 and the sine both settle with gap -0.015..0.090 mm in
+                             # 175 + ~50 steps instead of 267 + ~110 (limit 0.10-0.12 or 0.08 mm increments: no fewer)
+MAX_HOLD_STEPS = 30
+HOLD_PROGRESS_MM = 1e-3
+CONTACT_TIMECONST_STEPS = 2.0  # contact solref time constant in physics steps (the smallest MuJoCo allows)
+CONTACT_DAMPRATIO = 0.7
 PIN_ROTATION_RADIUS_FACTOR = 1.0  # pin rotation averaged over skin elements within 1 cell of its base
 DEPTH_MARGIN_MM = 1.0        # markers must stay this far above the window: depth <= G - H - margin
 _FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
@@ -228,6 +238,7 @@ class SkinSim:
         self._mj.mj_forward(self.model, self.data)
         self.build_seconds = time.perf_counter() - t0
         self.steps_taken = 0
+        self.holds = 0          # physics steps the robot held still in move_to (penetration limit)
 
     # ----- construction ---------------------------------------------------------------------
     def _build(self, friction: float) -> None:
@@ -300,7 +311,7 @@ class SkinSim:
                           pos=[0, 0, float(units.mm_to_m(self._hmin))])
         g.contype, g.conaffinity, g.condim, g.priority = 1, 2, condim, 1
         g.friction = [friction, 0.005, 0.0001]
-        g.solref = [dt, 1.0]
+        g.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
         g.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")   # MuJoCo's note on flexes without equality constraints
@@ -369,22 +380,39 @@ class SkinSim:
             self.steps_taken += 1
         return motion
 
+    def penetration_mm(self) -> float:
+        """Deepest current contact penetration (mm, >= 0): how far a skin vertex lags inside the indenter."""
+        n = self.data.ncon
+        return float(units.m_to_mm(max(0.0, -float(np.min(self.data.contact.dist[:n]))))) if n else 0.0
+
     def move_to(self, x_mm: float, y_mm: float, depth_mm: float, yaw_deg: float, *,
                 max_increment_mm: float = MAX_INCREMENT_MM, max_increment_deg: float = 1.0,
-                contact_increment_mm: float = CONTACT_INCREMENT_MM) -> int:
+                contact_increment_mm: float = CONTACT_INCREMENT_MM,
+                penetration_limit_mm: float = PENETRATION_LIMIT_MM) -> int:
         """Move the indenter in straight-line increments, one physics step each; returns steps.
 
         Increments are ``max_increment_mm`` while nothing touches and ``contact_increment_mm``
-        (if smaller) while the indenter is in contact with the skin.
+        (if smaller) while the indenter is in contact with the skin. While a skin vertex lags more
+        than ``penetration_limit_mm`` inside the indenter the robot holds still (physics steps on) as
+        long as the lag shrinks by ``HOLD_PROGRESS_MM`` a step, at most ``MAX_HOLD_STEPS`` in a row: the
+        lag stays bounded whatever the shape and stiffness, and a vertex caught for good (a flank
+        steeper than the mesh resolves) does not stall the motion.
         """
         a, b = np.array(self.pose), np.array([x_mm, y_mm, depth_mm, yaw_deg], float)
         dist, ang = float(np.linalg.norm(b[:3] - a[:3])), abs(b[3] - a[3])
-        s, n = 0.0, 0
+        s, n, held, last = 0.0, 0, 0, float("inf")
         while s < 1.0 - 1e-12:
-            inc = min(max_increment_mm, contact_increment_mm) if self.data.ncon else max_increment_mm
-            ds = min(inc / dist if dist > 0 else 1.0, max_increment_deg / ang if ang > 0 else 1.0)
-            s = min(1.0, s + ds)
-            self.set_pose(*(a + (b - a) * s))
+            pen = self.penetration_mm() if self.data.ncon else 0.0
+            if pen > penetration_limit_mm and held < MAX_HOLD_STEPS and pen < last - HOLD_PROGRESS_MM:
+                held += 1
+                self.holds += 1
+                last = pen
+            else:
+                held, last = 0, float("inf")
+                inc = min(max_increment_mm, contact_increment_mm) if self.data.ncon else max_increment_mm
+                ds = min(inc / dist if dist > 0 else 1.0, max_increment_deg / ang if ang > 0 else 1.0)
+                s = min(1.0, s + ds)
+                self.set_pose(*(a + (b - a) * s))
             self.step()
             n += 1
         return n
