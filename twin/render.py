@@ -485,7 +485,7 @@ class StereoRenderer:
         buf = self._gl.render(passes, LAB_BACKGROUND_BGR if lab else BACKGROUND_BGR)
         t1 = time.perf_counter()
         img = cv2.remap(buf, self._map1, self._map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        img = cv2.multiply(img, self._shade3[lab], dtype=cv2.CV_32F)
+        img = cv2.multiply(cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), self._shade3[lab], dtype=cv2.CV_32F)
         if self._scale > 1:
             img = cv2.resize(img, (2 * self._w_out, self._h_out), interpolation=cv2.INTER_AREA)
         self._timing["gl"] = (t1 - t0) * 1e3
