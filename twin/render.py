@@ -513,9 +513,10 @@ class StereoRenderer:
             cv2.randn(self._noise_z, 0.0, 1.0)
             sigma = cv2.LUT(cv2.convertScaleAbs(img), self._sigma_lut)
             z3 = cv2.merge([self._noise_z, self._noise_z, self._noise_z])
-            img = cv2.add(img, cv2.multiply(z3, sigma, dst=z3))
-        # saturate_cast rounds to nearest and clips at 255; negatives are clipped at 0 first
-        out = cv2.convertScaleAbs(cv2.max(img, 0.0))
+            # the sum is saturate_cast straight to 8 bits: rounded to nearest, clipped to [0, 255]
+            out = cv2.add(img, cv2.multiply(z3, sigma, dst=z3), dtype=cv2.CV_8U)
+        else:
+            out = cv2.add(img, 0.0, dtype=cv2.CV_8U)
         frame = StereoFrame(out, timestamp_s=0.0, index=self._frame_index, source=source)
         self._frame_index += 1
         self._timing["photometry"] = (time.perf_counter() - t0) * 1e3
