@@ -3,8 +3,10 @@
 A :class:`Motion` is a list of :class:`Waypoint` poses ``(x_mm, y_mm, depth_mm, yaw_deg)`` (see
 :class:`twin.physics.SkinSim`), each optionally captured as a frame. :func:`execute` drives a
 :class:`~twin.physics.SkinSim` through it: the indenter moves in straight lines in increments of at
-most ``MAX_INCREMENT_MM`` per physics step, and at every capture waypoint the sim is settled to
-quasi-static equilibrium (criterion in :data:`twin.physics.SETTLE_TOL_MM`). The equilibrium does not
+most ``MAX_INCREMENT_MM`` per physics step (``CONTACT_INCREMENT_MM`` in contact, holding still while
+a skin vertex lags more than ``PENETRATION_LIMIT_MM`` inside the indenter), and at every capture
+waypoint the sim is settled to quasi-static equilibrium (criterion in
+:data:`twin.physics.SETTLE_TOL_MM`). The equilibrium does not
 depend on the rate, so the physics may move faster than the robot; the documented robot speed sets
 the frames' timestamps (path length / speed) and is recorded in metadata.
 
