@@ -35,8 +35,10 @@ from pipeline.design import SensorDesign
 
 __all__ = ["Material", "skin_material", "gel_material", "shore_a_to_youngs_mpa", "MASS_SCALE", "RAYLEIGH_DAMPING_S"]
 
-MASS_SCALE = 0.02          # m_i / (dt^2 K_ii). Smaller settles faster (σ² = 10, 5 mm press: 0.05 -> 113 steps,
-                           # 0.02 -> 55); at 0.01 MuJoCo's M + h²K solve ran out of iterations (mjWARN_INERTIA)
+MASS_SCALE = 0.05          # m_i / (dt^2 K_ii). Contact stiffness scales with it: at 0.035 and 0.02 skin vertices
+                           # slipped through a sine's steep flanks (ω = π/5: 1.0-1.7 mm inside; 0.05: 0.005 mm),
+                           # although 0.02 settled the σ² = 10 press in half the steps; at 0.01 MuJoCo's M + h²K
+                           # solve ran out of iterations (mjWARN_INERTIA)
 RAYLEIGH_DAMPING_S = 1e-4  # s; << timestep, present so MuJoCo registers the flex's passive forces
 
 
