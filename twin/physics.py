@@ -72,8 +72,8 @@ CONTACT_INCREMENT_MM = 0.06  # ... and while touching it. A contact vertex lags 
                              # apex 1.1 mm inside; ζ = 0.7, 0.04 mm, a sine ω = π/15 pressed across the rim: 2.3 mm).
                              # ζ = 0.5 (dead-beat in theory) chattered and never settled.
 PENETRATION_LIMIT_MM = 0.08 # so the robot waits while any vertex lags deeper than this (the lag ζ = 1 at 0.02 mm had,
-                             # where it was validated): σ² = 10 and the sine both settle with gap -0.015..0.090 mm in
-                             # 175 + ~50 steps instead of 267 + ~110 (limit 0.10-0.12 or 0.08 mm increments: no fewer)
+                             # where it was validated): σ² = 10, 5 mm presses in 170 steps instead of 267, then settles
+                             # (~100), gap -0.006..0.092 mm (limit 0.10-0.12 or 0.08 mm increments: no fewer steps)
 MAX_HOLD_STEPS = 30
 HOLD_PROGRESS_MM = 1e-3
 CONTACT_TIMECONST_STEPS = 2.0  # contact solref time constant in physics steps (the smallest MuJoCo allows)
