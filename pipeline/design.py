@@ -28,6 +28,7 @@ marker whose polar angle about the ring's centroid is closest to 0 (the +x direc
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import sys
 from dataclasses import dataclass
@@ -266,7 +267,14 @@ def marker_layout(pattern: Pattern) -> tuple[np.ndarray, np.ndarray]:
     hexagon: hexagonal lattice, layer k holds 6k markers (127 for 7 layers);
     circular: layer k holds 6k markers on a circle of radius k·separation (217 for 9 layers);
     square: square lattice, layer k is the square ring of 8k markers (121 for 6 layers).
+    Computed once per pattern (the runner asks for it on every frame: 1.5 ms a call); callers get copies.
     """
+    xy, layers = _marker_layout(pattern)
+    return xy.copy(), layers.copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _marker_layout(pattern: Pattern) -> tuple[np.ndarray, np.ndarray]:
     s = pattern.separation_mm
     m = pattern.layers
     rings: list[np.ndarray] = []
