@@ -336,3 +336,19 @@ def test_seeded_noise_is_reproducible_and_has_modelled_sigma():
         expected = np.sqrt(np.mean(R.SHOT_GAIN_DN_PER_E * level[sel] + R.READ_NOISE_DN**2) + 1 / 12)
         assert abs(resid[sel].std() / expected - 1.0) < 0.15, (lo, hi, resid[sel].std(), expected)
         assert abs(resid[sel].mean()) < 0.3
+
+
+def test_renderer_survives_a_caller_clearing_the_gl_platform_variable(monkeypatch):
+    """pyrender reads PYOPENGL_PLATFORM at every context creation; once OpenGL is imported the platform
+    cannot change, so setup_gl must put the variable back (a caller's monkeypatch used to break the next
+    renderer with 'platform None')."""
+    from twin.gl import setup_gl
+
+    chosen = setup_gl()
+    monkeypatch.delenv("PYOPENGL_PLATFORM", raising=False)
+    r = R.StereoRenderer(DESIGN, rng=np.random.default_rng(0), noise=False)
+    import os
+
+    assert os.environ.get("PYOPENGL_PLATFORM") == chosen
+    frame = r.render_markers(DESIGN.rest_markers_mm(), np.tile([0.0, 0.0, -1.0], (DESIGN.marker_count, 1)))
+    assert frame.image.shape == (H, 2 * W, 3) and frame.image.max() > 100
