@@ -232,3 +232,73 @@ def test_settled_markers_match_a_long_run_reference():
     ref, _ = sim.markers()
     assert np.linalg.norm(truth.marker_xyz_mm - ref, axis=1).max() < SETTLE_REF_TOL_MM
     assert sim.warnings() == {}
+
+
+# ----- direct quasi-static solves (SkinSim.solve_at, the default in robot.execute) -----------------
+DIRECT_TOL_MM = SETTLE_REF_TOL_MM  # direct vs followed: each settle stops within 0.03 mm of the equilibrium (test
+                                  # above); measured 0.004 (σ² = 10, 5 mm) to 0.013 mm (σ² = 50, frames at 2 and 4 mm)
+
+
+@pytest.mark.parametrize("sigma2,n_frames", [(10.0, 1), (50.0, 2)])
+def test_direct_solve_reaches_the_followed_paths_equilibrium(sigma2, n_frames):
+    """Frictionless + hyperelastic: the equilibrium depends on the pose only. The direct solve is
+    accepted on wide Gaussians and its markers and skin agree with the followed path's within
+    DIRECT_TOL_MM, in fewer physics steps."""
+    d = load_design("hexagon127")
+    ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=sigma2)
+    runs = {}
+    for direct in (True, False):
+        sim = SkinSim(d, ind)          # the twin's mesh (on the 2.5 mm test mesh the σ² = 10 jump is rejected)
+        runs[direct] = (robot.execute(sim, robot.press_motion(4.0, n_frames=n_frames), direct=direct), sim)
+        assert sim.warnings() == {}
+    (fast, sim_f), (slow, sim_s) = runs[True], runs[False]
+    assert all(s.direct for _, s, _ in fast) and not any(s.direct for _, s, _ in slow)
+    assert sim_f.direct_solves == n_frames and sim_f.direct_rejections == 0
+    for (_, _, a), (_, _, b) in zip(fast, slow):
+        assert np.abs(a.marker_xyz_mm - b.marker_xyz_mm).max() < DIRECT_TOL_MM
+        assert np.abs(a.skin_vertices_mm - b.skin_vertices_mm).max() < DIRECT_TOL_MM
+    assert sim_f.steps_taken < 0.6 * sim_s.steps_taken
+    assert sim_f.gap_mm().max() <= GAP_TOL_MM and sim_f.gap_mm().min() >= -PENETRATION_TOL_MM
+
+
+def test_direct_solve_is_rejected_and_undone_where_vertices_would_tunnel():
+    """A sine pressed 5 mm across the clamped rim: jumping there pushes vertices through the flanks
+    (1.9 mm measured), so solve_at must reject it, restore the state bit for bit, and the motion
+    then follows the path (same result as direct=False)."""
+    d = load_design("hexagon127")
+    ind = make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=np.pi / 15)
+    sim = SkinSim(d, ind, mesh=COARSE)
+    q0, v0, pose0, t0 = sim.data.qpos.copy(), sim.data.qvel.copy(), sim.pose, sim.data.time
+    assert sim.solve_at(0.0, 0.0, 5.0, 0.0) is None
+    assert sim.direct_rejections == 1 and sim.direct_wasted_steps > 0
+    assert np.array_equal(sim.data.qpos, q0) and np.array_equal(sim.data.qvel, v0)
+    assert sim.pose == pose0 and sim.data.time == t0
+    assert np.all(sim.model.dof_damping == 0)
+    (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0))
+    assert not stats.direct
+    sim2 = SkinSim(d, ind, mesh=COARSE)
+    (_, _, ref), = robot.execute(sim2, robot.press_motion(5.0), direct=False)
+    assert np.abs(truth.marker_xyz_mm - ref.marker_xyz_mm).max() < DIRECT_TOL_MM
+    assert sim.outer_penetration_mm() <= PENETRATION_TOL_MM
+
+
+def test_direct_solve_refuses_friction():
+    """With friction the equilibrium depends on the path: solve_at declines, the path is followed."""
+    d = load_design("hexagon127")
+    sim = SkinSim(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=50), mesh=COARSE, friction=0.5)
+    assert sim.solve_at(0.0, 0.0, 1.0, 0.0) is None
+    assert sim.steps_taken == 0
+
+
+def test_model_cache_gives_the_same_physics():
+    """A second sim of the same design/indenter/mesh copies the compiled model: identical results, and
+    a sim with different parameters is not served from the cache."""
+    d = load_design("hexagon127")
+    ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=20)
+    out = []
+    for _ in range(2):
+        sim = SkinSim(d, ind, mesh=COARSE)
+        (_, _, t), = robot.execute(sim, robot.press_motion(2.0))
+        out.append((sim.model_from_cache, t.marker_xyz_mm))
+    assert out[1][0] and np.array_equal(out[0][1], out[1][1])
+    assert not SkinSim(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=21), mesh=COARSE).model_from_cache
