@@ -328,6 +328,7 @@ class StereoRenderer:
         self.last_timing_ms: dict[str, float] = {}
         self._timing: dict[str, float] = {}
         self._noise_z = np.empty((self._h_out, 2 * self._w_out), np.float32)
+        self._bufs: dict[str, np.ndarray] = {}
         self._sigma_lut = np.sqrt(SHOT_GAIN_DN_PER_E * np.arange(256) + READ_NOISE_DN**2).astype(np.float32)[None]
 
     # ----- setup ---------------------------------------------------------------------------
@@ -403,6 +404,14 @@ class StereoRenderer:
         module = (led * vignette).reshape(H, W, 1).astype(np.float32)
         lab = vignette.reshape(H, W, 1).astype(np.float32)
         return module, lab
+
+    def _buf(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        """A per-renderer scratch image, reused between frames (fresh multi-MB arrays cost page faults:
+        ~1 ms per 7 MB float image here). Never handed to the caller."""
+        b = self._bufs.get(name)
+        if b is None or b.shape != tuple(shape) or b.dtype != np.dtype(dtype):
+            b = self._bufs[name] = np.empty(shape, dtype)
+        return b
 
     def _set_mesh(self, side: str, name: str, positions: np.ndarray, faces: np.ndarray, bgr) -> None:
         """Create or update the mesh ``name`` of camera ``side`` (indices re-uploaded only if they change)."""
@@ -484,8 +493,11 @@ class StereoRenderer:
             passes.append(((k * self._w_r, 0, self._w_r, self._h_r), self._views[side].mvp, keys))
         buf = self._gl.render(passes, LAB_BACKGROUND_BGR if lab else BACKGROUND_BGR)
         t1 = time.perf_counter()
-        img = cv2.remap(buf, self._map1, self._map2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        img = cv2.multiply(cv2.cvtColor(img, cv2.COLOR_RGBA2RGB), self._shade3[lab], dtype=cv2.CV_32F)
+        H, W2 = self._map1.shape[:2]
+        img = cv2.remap(buf, self._map1, self._map2, cv2.INTER_LINEAR, dst=self._buf("remap", (H, W2, 4), np.uint8),
+                        borderMode=cv2.BORDER_REPLICATE)
+        rgb = cv2.cvtColor(img, cv2.COLOR_RGBA2RGB, dst=self._buf("rgb", (H, W2, 3), np.uint8))
+        img = cv2.multiply(rgb, self._shade3[lab], dst=self._buf("shaded", (H, W2, 3), np.float32), dtype=cv2.CV_32F)
         if self._scale > 1:
             img = cv2.resize(img, (2 * self._w_out, self._h_out), interpolation=cv2.INTER_AREA)
         self._timing["gl"] = (t1 - t0) * 1e3
@@ -495,7 +507,7 @@ class StereoRenderer:
     def _finish(self, pair: np.ndarray, source: str) -> StereoFrame:
         t0 = time.perf_counter()
         W = self._w_out
-        img = cv2.GaussianBlur(pair, (0, 0), BLUR_SIGMA_PX)
+        img = cv2.GaussianBlur(pair, (0, 0), BLUR_SIGMA_PX, dst=self._buf("blur", pair.shape, np.float32))
         # the pair was blurred as one image: redo the columns next to the seam from each view alone
         # (kernel radius r = SEAM_BLUR_RADIUS_PX; a 2r + 1 wide strip has the view's own edge handling)
         r = SEAM_BLUR_RADIUS_PX
@@ -511,8 +523,9 @@ class StereoRenderer:
             # seeded rng, different for different seeds, ~6x faster than numpy's normal sampler.
             cv2.setRNGSeed(int(self.rng.integers(0, 2**31 - 1)))
             cv2.randn(self._noise_z, 0.0, 1.0)
-            sigma = cv2.LUT(cv2.convertScaleAbs(img), self._sigma_lut)
-            z3 = cv2.merge([self._noise_z, self._noise_z, self._noise_z])
+            level = cv2.convertScaleAbs(img, dst=self._buf("level", img.shape, np.uint8))
+            sigma = cv2.LUT(level, self._sigma_lut, dst=self._buf("sigma", img.shape, np.float32))
+            z3 = cv2.merge([self._noise_z, self._noise_z, self._noise_z], dst=self._buf("z3", img.shape, np.float32))
             # the sum is saturate_cast straight to 8 bits: rounded to nearest, clipped to [0, 255]
             out = cv2.add(img, cv2.multiply(z3, sigma, dst=z3), dtype=cv2.CV_8U)
         else:
