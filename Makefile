@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml
 	# pyrender pins PyOpenGL 3.1.0, whose EGL/OSMesa paths fail on Mesa 22 / numpy 2; 3.1.10 works
 	# (pip then prints a resolver warning about pyrender's pin, which is expected).
 	$(BIN)/python -m pip install -q 'PyOpenGL==3.1.10' 2>&1 | grep -v "pyrender 0.1.45 requires\|dependency conflicts\|Location" || true
-	$(BIN)/python -c "import mujoco, pyrender, cv2, trimesh, scipy, numpy"
+	$(BIN)/python -c "import mujoco, pyrender, cv2, trimesh, scipy, numpy, numba"
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -26,6 +26,7 @@ import threading
 from dataclasses import dataclass, field, replace
 
 import cv2
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -397,15 +398,6 @@ def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
     return cand[keep]
 
 
-def _row_median(vals: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Median of ``vals[i, mask[i]]`` per row (NaN where a row has no valid entry), vectorised."""
-    v = np.sort(np.where(mask, vals, np.inf), axis=1)
-    n = mask.sum(1)
-    lo = v[np.arange(len(v)), np.maximum((n - 1) // 2, 0)]
-    hi = v[np.arange(len(v)), np.maximum(n // 2, 0)]
-    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
-
-
 def _patch_offsets(rmax: int) -> tuple[np.ndarray, np.ndarray]:
     r = np.arange(-rmax, rmax + 1)
     ox, oy = np.meshgrid(r, r)
@@ -419,11 +411,10 @@ def _group_geometry(r_blob: float, params: DetectionParams) -> tuple[float, floa
     return r_in, r_out, r_win, int(math.ceil(max(r_out, r_win)))
 
 
-def _group_offsets(r_blob: float, params: DetectionParams, row: int):
-    """Flat pixel offsets (relative to a rounded centre, image rows ``row`` long) of the ring (sorted
-    by sector, with the sector starts), the centroid window (with its x, y offsets) and the core for
-    blobs of radius ``r_blob``. Cached per (radius, row length)."""
-    key = (r_blob, params.centroid_radius_factor, row)
+def _group_offsets(r_blob: float, params: DetectionParams):
+    """Pixel offsets (dx, dy) from a rounded centre of the ring (ordered by sector, with the sector
+    starts), the centroid window and the core for blobs of radius ``r_blob``. Cached per radius."""
+    key = (r_blob, params.centroid_radius_factor)
     hit = _OFFSETS.get(key)
     if hit is not None:
         return hit
@@ -434,14 +425,11 @@ def _group_offsets(r_blob: float, params: DetectionParams, row: int):
     rox, roy = ox[ring_sel], oy[ring_sel]
     sector = (np.floor((np.arctan2(roy, rox) + np.pi) * (_SECTORS / (2 * np.pi))).astype(np.intp)) % _SECTORS
     o = np.argsort(sector, kind="stable")
-    ring = roy[o] * row + rox[o]
-    starts = np.searchsorted(sector[o], np.arange(_SECTORS))
+    starts = np.searchsorted(sector[o], np.arange(_SECTORS + 1)).astype(np.intp)
     win_sel = d2 <= r_win * r_win
-    wox, woy = ox[win_sel].astype(np.float32), oy[win_sel].astype(np.float32)
-    win = oy[win_sel] * row + ox[win_sel]
     core_sel = d2 <= (0.5 * r_blob + 0.5) ** 2
-    core = oy[core_sel] * row + ox[core_sel]
-    hit = (ring, starts, win, np.column_stack([wox, woy]), core)
+    hit = tuple(np.ascontiguousarray(a, dtype=np.intp) for a in
+                (rox[o], roy[o], starts, ox[win_sel], oy[win_sel], ox[core_sel], oy[core_sel]))
     if len(_OFFSETS) > 256:
         _OFFSETS.clear()
     _OFFSETS[key] = hit
@@ -451,72 +439,114 @@ def _group_offsets(r_blob: float, params: DetectionParams, row: int):
 _OFFSETS: dict[tuple, tuple] = {}
 
 
-def _median_rows(vals: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Row medians of ``vals`` over ``mask`` (NaN for empty rows); partition when all are valid."""
-    n = vals.shape[1]
-    if n and mask.all():
-        k = sorted({(n - 1) // 2, n // 2})
-        part = np.partition(vals, k, axis=1)
-        return 0.5 * (part[:, k[0]].astype(np.float64) + part[:, k[-1]])
-    return _row_median(vals, mask)
+@numba.njit(cache=True, nogil=True)
+def _gather(img, ix, iy, dx, dy, out):
+    """``out[k] = img[iy + dy[k], ix + dx[k]]``, -1 outside the image; returns the count inside."""
+    h, w = img.shape
+    n_in = 0
+    for k in range(len(dx)):
+        x, y = ix + dx[k], iy + dy[k]
+        if 0 <= x < w and 0 <= y < h:
+            out[k] = img[y, x]
+            n_in += 1
+        else:
+            out[k] = -1.0
+    return n_in
 
 
-def _measure_group(flat: np.ndarray, row: int, pad: int, cand: np.ndarray, params: DetectionParams,
-                   sat_thr: float):
-    """Centroid + photometry for candidates of ONE measuring scale. See _refine_and_measure.
+@numba.njit(cache=True, nogil=True)
+def _median_inside(vals, buf):
+    """Median of the entries >= 0 of ``vals`` (NaN if none), ``buf`` a scratch array as long."""
+    n = 0
+    for v in vals:
+        if v >= 0.0:
+            buf[n] = v
+            n += 1
+    if n == 0:
+        return np.nan
+    v = buf[:n]
+    v.sort()
+    return 0.5 * (v[(n - 1) // 2] + v[n // 2])
 
-    ``flat`` is the padded [0, 1] image raveled (-1 outside the image), rows ``row`` long. The centroid
-    is iterated first (background = ring median about the candidate, robust to the candidate being a
-    pixel or two off, as on the coarse pyramid levels); ring, sectors and core are then laid out about
-    the rounded refined centre (<= 0.71 px off), so every candidate of a group gathers the same flat
-    offsets (one ``np.take`` each): only the pixels actually used are read.
+
+@numba.njit(cache=True, nogil=True)
+def _measure_kernel(img, cx, cy, lim, n_iter, sat_thr, rdx, rdy, starts, wdx, wdy, cdx, cdy,
+                    xy, contrast, sectors, sat, core_sat):
+    """Compiled per-candidate loop of :func:`_refine_and_measure` for candidates at (cx, cy), all of one radius.
+
+    Writes the refined centres ``xy`` (N, 2), ``contrast``, ``sectors`` (N, 8), ``sat``, ``core_sat``.
+    Pixels outside the image read as -1: never ring or window light, never saturated.
     """
-    r_blob = float(np.sqrt(2) * cand[0, 5])
-    ring, starts, win, wxy, core = _group_offsets(r_blob, params, row)
+    ring = np.empty(len(rdx), np.float64)
+    buf = np.empty(len(rdx), np.float64)
+    win = np.empty(len(wdx), np.float64)
+    core = np.empty(len(cdx), np.float64)
+    for i in range(len(cx)):
+        x0, y0 = cx[i], cy[i]
+        _gather(img, int(np.rint(x0)), int(np.rint(y0)), rdx, rdy, ring)
+        bg = _median_inside(ring, buf)
+        bg = np.float64(np.float32(0.0 if np.isnan(bg) else bg))
+        x, y = x0, y0
+        for _ in range(max(1, n_iter)):
+            ix, iy = int(np.rint(x)), int(np.rint(y))
+            _gather(img, ix, iy, wdx, wdy, win)
+            tot = 0.0
+            mx = 0.0
+            my = 0.0
+            for k in range(len(wdx)):
+                wt = win[k] - bg
+                if wt > 0.0:
+                    tot += wt
+                    mx += wt * wdx[k]
+                    my += wt * wdy[k]
+            nx, ny = x, y
+            if tot > 0.0:
+                nx, ny = ix + mx / tot, iy + my / tot
+            # a centroid that runs away (neighbour or plateau in the window) keeps the DoH peak
+            if math.hypot(nx - x0, ny - y0) <= lim:
+                x, y = nx, ny
+            else:
+                x, y = x0, y0
+        xy[i, 0], xy[i, 1] = x, y
+        # photometry about the refined centre
+        ix, iy = int(np.rint(x)), int(np.rint(y))
+        n_in = _gather(img, ix, iy, rdx, rdy, ring)
+        bg = _median_inside(ring, buf)
+        if np.isnan(bg):
+            bg = 0.0
+        n_sat = 0
+        for k in range(len(rdx)):
+            if ring[k] >= sat_thr:
+                n_sat += 1
+        sat[i] = n_sat / max(n_in, 1)
+        for s in range(len(starts) - 1):
+            cnt = 0
+            acc = 0.0
+            for k in range(starts[s], starts[s + 1]):
+                if ring[k] >= 0.0:
+                    cnt += 1
+                    acc += ring[k]
+            sectors[i, s] = (acc / cnt if cnt > 0 else -np.inf) - bg
+        _gather(img, ix, iy, cdx, cdy, core)
+        peak = -np.inf
+        n_sat = 0
+        for k in range(len(cdx)):
+            peak = max(peak, core[k])
+            if core[k] >= sat_thr:
+                n_sat += 1
+        contrast[i] = peak - bg
+        core_sat[i] = n_sat / len(cdx)
 
-    def base(xy_):
-        ix = np.rint(xy_[:, 0]).astype(np.intp)
-        iy = np.rint(xy_[:, 1]).astype(np.intp)
-        return ix, iy, (iy + pad) * row + (ix + pad)
 
-    _, _, b0 = base(cand)
-    rv = np.take(flat, b0[:, None] + ring)
-    bg = np.nan_to_num(_median_rows(rv, rv >= 0), nan=0.0).astype(np.float32)
-    xy = cand[:, :2].copy()
-    lim = 0.5 * r_blob + 1.0
-    for _ in range(max(1, params.centroid_iterations)):
-        cx, cy, b = base(xy)
-        v = np.take(flat, b[:, None] + win)
-        wts = np.maximum(v - bg[:, None], np.float32(0.0))  # outside the image: v = -1 -> weight 0
-        tot = wts.sum(1, dtype=np.float64)
-        ok = tot > 0
-        mom = (wts @ wxy).astype(np.float64)
-        new = xy.copy()
-        new[ok, 0] = cx[ok] + mom[ok, 0] / tot[ok]
-        new[ok, 1] = cy[ok] + mom[ok, 1] / tot[ok]
-        # a centroid that runs away (neighbour or plateau in the window) keeps the DoH peak
-        moved = np.hypot(new[:, 0] - cand[:, 0], new[:, 1] - cand[:, 1])
-        xy = np.where((moved <= lim)[:, None], new, cand[:, :2])
-
-    # photometry about the refined centre
-    _, _, b = base(xy)
-    rv = np.take(flat, b[:, None] + ring)
-    inside = rv >= 0
-    n_in = inside.sum(1)
-    bg = np.nan_to_num(_median_rows(rv, inside), nan=0.0)
-    rv0 = np.where(inside, rv, np.float32(0.0))
-    cnt = np.add.reduceat(inside.astype(np.int32), starts, axis=1)
-    tot = np.add.reduceat(rv0, starts, axis=1, dtype=np.float64)
-    sectors = np.where(cnt > 0, tot / np.maximum(cnt, 1), -np.inf) - bg[:, None]
-    sat = (rv >= sat_thr).sum(1) / np.maximum(n_in, 1)
-    cv = np.take(flat, b[:, None] + core)
-    peak = cv.max(axis=1).astype(np.float64)
-    core_sat = (cv >= sat_thr).mean(axis=1)
-    return xy, peak - bg, sectors, sat, core_sat
-
-
-def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarray, params: DetectionParams):
+def _refine_and_measure(grey_f: np.ndarray, cand: np.ndarray, params: DetectionParams):
     """Sub-pixel centroids and local photometry per candidate.
+
+    Per candidate the background is the median of a ring about it (robust to the candidate being a
+    pixel or two off, as on the coarse pyramid levels); the centroid of the window above that
+    background is iterated ``centroid_iterations`` times (a centroid that moves more than
+    ``0.5 r + 1`` px from the DoH peak keeps the peak); ring, sectors and core are then laid out
+    about the rounded refined centre (<= 0.71 px off) for the photometry. Geometry per measuring
+    scale (column 5 of ``cand``), so candidates of one scale share the pixel offsets.
 
     Returns ``xy`` (N, 2) refined centres, ``contrast`` (N,) peak minus ring median, ``sectors``
     (N, 8) mean of each angular ring sector minus the ring median (-inf for a sector wholly outside
@@ -527,24 +557,21 @@ def _refine_and_measure(grey_u8: np.ndarray, grey_f: np.ndarray, cand: np.ndarra
     just outside the marker edge and, on the densest real frames (r ~4.7 px, pitch 16.8 px), inside
     the dark gap between markers.
     """
-    pad = max(_group_geometry(float(np.sqrt(2) * cand[:, 5].max()), params)[3], 1) + 2
-    h, w = grey_f.shape
-    padded = _Workspace.get("padded", (h + 2 * pad, w + 2 * pad))
-    padded[:pad].fill(-1.0)
-    padded[-pad:].fill(-1.0)
-    padded[:, :pad].fill(-1.0)
-    padded[:, -pad:].fill(-1.0)
-    padded[pad:-pad, pad:-pad] = grey_f
-    flat = padded.reshape(-1)
     # grey level k is stored as float32(k / 255): compare half a level below to be exact
-    sat_thr = np.float32((params.saturation_level - 0.5) / 255.0)
-    xy = np.empty((len(cand), 2))
-    sectors = np.empty((len(cand), _SECTORS))
-    contrast, sat, core_sat = (np.empty(len(cand)) for _ in range(3))
+    sat_thr = float(np.float32((params.saturation_level - 0.5) / 255.0))
+    n = len(cand)
+    xy = np.empty((n, 2))
+    sectors = np.empty((n, _SECTORS))
+    contrast, sat, core_sat = (np.empty(n) for _ in range(3))
     for s in np.unique(cand[:, 5]):
         g = np.nonzero(cand[:, 5] == s)[0]
-        xy[g], contrast[g], sectors[g], sat[g], core_sat[g] = _measure_group(flat, w + 2 * pad, pad, cand[g],
-                                                                             params, sat_thr)
+        r_blob = float(np.sqrt(2) * s)
+        out = (np.empty((len(g), 2)), np.empty(len(g)), np.empty((len(g), _SECTORS)), np.empty(len(g)),
+               np.empty(len(g)))
+        _measure_kernel(grey_f, np.ascontiguousarray(cand[g, 0]), np.ascontiguousarray(cand[g, 1]),
+                        0.5 * r_blob + 1.0, int(params.centroid_iterations), sat_thr,
+                        *_group_offsets(r_blob, params), *out)
+        xy[g], contrast[g], sectors[g], sat[g], core_sat[g] = out
     return xy, contrast, sectors, sat, core_sat
 
 
@@ -671,7 +698,7 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
     cand = _suppress(cand, params.min_separation_px)
     if len(cand) == 0:
         return Blobs.empty()
-    xy, contrast, sectors, sat, core_sat = _refine_and_measure(grey, grey_f, cand, params)
+    xy, contrast, sectors, sat, core_sat = _refine_and_measure(grey_f, cand, params)
     keep = contrast >= params.min_contrast
     if params.rejections:
         keep &= cand[:, 4] <= params.max_elongation
