@@ -152,25 +152,29 @@ class Reconstructor:
         """Apparent cloud of the undeformed reference frame (linear model), once known."""
         return self._reference
 
-    def _stereo_check(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray]:
+    def _stereo_check(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud]:
         """Drop pairs that cannot be one marker: refracted rays more than :data:`STEREO_GATE_MM` apart,
         or a 3-D point outside the gel (closer than the acrylic, or more than :data:`STEREO_BULGE_MM`
         beyond the rest marker depth). Catches identity errors that differ between the two views
-        (e.g. a ring coded with different shifts); returns the kept matches and the rejected ids."""
+        (e.g. a ring coded with different shifts). Returns the kept matches, the rejected ids, and the
+        exactly refraction-corrected cloud of the kept matches (with the runner's index in exact mode,
+        the design's otherwise): the check has to trace the rays anyway, and each marker's rays are
+        traced independently, so this IS ``correct_exact`` of the kept matches."""
         if len(matches) == 0:
-            return matches, np.empty(0, np.int64)
+            return matches, np.empty(0, np.int64), _empty_cloud()
         cloud, gap = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel if self.refraction == "exact"
                                    else None, return_gap=True)
         z = cloud.xyz_mm[:, 2]
         rest_z = self._rest_z[cloud.ids]
         ok = (gap <= STEREO_GATE_MM) & (z >= self.design.gel_acrylic_z_mm) & (z <= rest_z + STEREO_BULGE_MM)
-        good = np.isin(matches.ids, cloud.ids[ok])
+        kept_cloud = cloud if ok.all() else MarkerCloud(cloud.ids[ok], cloud.xyz_mm[ok])
+        good = np.isin(matches.ids, kept_cloud.ids)
         if good.all():
-            return matches, np.empty(0, np.int64)
+            return matches, np.empty(0, np.int64), kept_cloud
         rejected = matches.ids[~good]
         kept = MarkerMatches(matches.ids[good], matches.left_px[good], matches.right_px[good],
                              np.union1d(matches.unmatched_ids, rejected))
-        return kept, rejected
+        return kept, rejected, kept_cloud
 
     def _match(self, frame: StereoFrame) -> tuple[MarkerMatches, tuple[int, int], dict[str, float]]:
         t0 = time.perf_counter()
@@ -197,7 +201,7 @@ class Reconstructor:
         notes: list[str] = []
         matches, n_blobs, timings = self._match(frame)
         t = time.perf_counter()
-        matches, rejected = self._stereo_check(matches)
+        matches, rejected, exact_cloud = self._stereo_check(matches)
         timings["stereo_check"] = 1e3 * (time.perf_counter() - t)
         if len(rejected):
             notes.append(f"stereo check rejected {len(rejected)} left/right pair(s) (ids "
@@ -207,7 +211,7 @@ class Reconstructor:
         timings["triangulate"] = 1e3 * (time.perf_counter() - t)
         t = time.perf_counter()
         if self.refraction == "exact":
-            corrected = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel)
+            corrected = exact_cloud
         else:
             if self._reference is None:
                 if len(apparent) < self.design.marker_count:
