@@ -3,7 +3,7 @@
 The pins hold each marker a distance H + T below the outer skin, along the skin normal (the paper's
 assumption: stiff pins stay perpendicular to the skin). So:
 
-1. fit a smooth marker surface z = f(x, y) through the markers (thin-plate-spline RBF);
+1. fit a smooth marker surface z = f(x, y) through the markers (smoothing thin-plate spline);
 2. its unit normal at each marker, N = (-f_x, -f_y, 1) / |.|, points out of the skin (+z);
 3. the skin point of each marker is P_s = P + (H + T) N;
 4. :func:`height_map` refits a surface through the skin points on a regular grid.
@@ -19,47 +19,119 @@ StereoTacTip paper, Sec. "Skin Surface Reconstruction", Eq. (9)-(10).
 from __future__ import annotations
 
 import numpy as np
-from scipy.interpolate import RBFInterpolator
 from scipy.spatial import Delaunay, QhullError
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
 from pipeline.types import HeightMap, MarkerCloud, SkinSurface
 
-__all__ = ["SurfaceError", "skin_surface", "height_map", "fit_surface", "SMOOTHING", "MIN_MARKERS",
+__all__ = ["SurfaceError", "skin_surface", "height_map", "fit_surface", "ThinPlateSpline", "SMOOTHING", "MIN_MARKERS",
            "GRID_STEP_MM"]
 
-# Thin-plate-spline smoothing (RBFInterpolator's `smoothing`, units mm^2 of z): 1e-3 leaves exact
+# Thin-plate-spline smoothing (added to the kernel diagonal as scipy's RBFInterpolator does; mm^2 of z): 1e-3 leaves exact
 # data interpolated to ~1 um yet keeps the normals stable under ~0.01 mm triangulation noise.
 SMOOTHING = 1e-3
 MIN_MARKERS = 6       # a thin-plate spline with a linear tail needs well over 3 non-collinear points
 GRID_STEP_MM = 0.25   # default height-map resolution: ~1/10 of the 2.54 mm marker separation
-_FD_STEP_MM = 1e-3    # central-difference step for the surface gradient (error ~ h^2 f''' ~ 1e-7)
 
 
 class SurfaceError(UserError, ValueError):
     """Too few or degenerate markers to fit a surface."""
 
 
-def fit_surface(xyz_mm: np.ndarray, *, smoothing: float = SMOOTHING) -> RBFInterpolator:
-    """Thin-plate-spline z = f(x, y) through points (N, 3) mm; raises SurfaceError if degenerate."""
+class ThinPlateSpline:
+    """Smoothing thin-plate spline z = f(x, y) with a linear tail, and its analytic gradient.
+
+    The function scipy's ``RBFInterpolator(kernel="thin_plate_spline", degree=1, smoothing=s)`` fits
+    (kernel ``phi(r) = r**2 log r``; ``s`` added to the kernel matrix's diagonal; the tail's coordinates
+    shifted and scaled to [-1, 1] for conditioning; tests/test_surface.py compares the two), solved
+    directly: at the pipeline's sizes (<= a few hundred markers) scipy's general machinery costs more
+    than the fit, and the normals needed four extra evaluations per marker for finite differences.
+    ``gradient`` is exact, and at the centres it reuses the fit's pairwise logarithms.
+    """
+
+    _CHUNK = 4096  # query points evaluated at a time (bounds the (chunk, N) blocks)
+
+    def __init__(self, xy: np.ndarray, z: np.ndarray, smoothing: float = SMOOTHING) -> None:
+        xy = np.ascontiguousarray(xy, dtype=np.float64)
+        n = len(xy)
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        self._shift = 0.5 * (hi + lo)
+        self._scale = np.where(hi > lo, 0.5 * (hi - lo), 1.0)
+        self.centres = xy
+        tail = self._tail(xy)
+        if np.linalg.matrix_rank(tail) < 3:
+            raise np.linalg.LinAlgError("the points are collinear: the linear tail is not determined")
+        self._at_centres = self._pairwise(xy)
+        dx, dy, r2, lg = self._at_centres
+        lhs = np.zeros((n + 3, n + 3))
+        lhs[:n, :n] = 0.5 * r2 * lg
+        lhs[np.arange(n), np.arange(n)] += smoothing
+        lhs[:n, n:] = tail
+        lhs[n:, :n] = tail.T
+        rhs = np.concatenate([np.asarray(z, dtype=np.float64), np.zeros(3)])
+        sol = np.linalg.solve(lhs, rhs)
+        if not np.all(np.isfinite(sol)):
+            raise np.linalg.LinAlgError("the spline system is singular (duplicated points?)")
+        self._w, self._a = sol[:n], sol[n:]
+
+    def _tail(self, q: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.ones(len(q)), (q - self._shift) / self._scale])
+
+    def _pairwise(self, q: np.ndarray):
+        """dx, dy, r**2 and log(r**2) (0 where r = 0) from the centres to the query points (M, N)."""
+        dx = q[:, 0, None] - self.centres[None, :, 0]
+        dy = q[:, 1, None] - self.centres[None, :, 1]
+        r2 = dx * dx + dy * dy
+        return dx, dy, r2, np.log(np.where(r2 > 0, r2, 1.0))
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        """f at query points (M, 2)."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1, 2)
+        out = np.empty(len(q))
+        for k in range(0, len(q), self._CHUNK):
+            c = q[k:k + self._CHUNK]
+            _, _, r2, lg = self._pairwise(c)
+            out[k:k + self._CHUNK] = (0.5 * r2 * lg) @ self._w + self._tail(c) @ self._a   # r**2 log r
+        return out
+
+    def gradient(self, q: np.ndarray | None = None) -> np.ndarray:
+        """(df/dx, df/dy) at query points (M, 2), default the centres: grad phi = (x - c)(2 log r + 1),
+        which vanishes at r = 0 with x - c."""
+        if q is None:
+            blocks = [self._at_centres]
+            n_q = len(self.centres)
+        else:
+            q = np.asarray(q, dtype=np.float64).reshape(-1, 2)
+            blocks = (self._pairwise(q[k:k + self._CHUNK]) for k in range(0, len(q), self._CHUNK))
+            n_q = len(q)
+        out = np.empty((n_q, 2))
+        k = 0
+        for dx, dy, _, lg in blocks:
+            g = lg + 1.0
+            out[k:k + len(dx), 0] = (g * dx) @ self._w
+            out[k:k + len(dx), 1] = (g * dy) @ self._w
+            k += len(dx)
+        return out + self._a[1:] / self._scale
+
+
+def fit_surface(xyz_mm: np.ndarray, *, smoothing: float = SMOOTHING) -> ThinPlateSpline:
+    """Thin-plate spline z = f(x, y) through points (N, 3) mm; raises SurfaceError if degenerate."""
     xyz = np.asarray(xyz_mm, dtype=np.float64).reshape(-1, 3)
     if len(xyz) < MIN_MARKERS:
         raise SurfaceError(f"surface fit: need at least {MIN_MARKERS} markers, got {len(xyz)}")
+    if not np.all(np.isfinite(xyz)):
+        raise SurfaceError(f"surface fit: {int((~np.isfinite(xyz)).any(axis=1).sum())} of {len(xyz)} points are not finite")
     try:
-        return RBFInterpolator(xyz[:, :2], xyz[:, 2], kernel="thin_plate_spline", smoothing=smoothing, degree=1)
-    except (np.linalg.LinAlgError, ValueError) as exc:
+        return ThinPlateSpline(xyz[:, :2], xyz[:, 2], smoothing)
+    except np.linalg.LinAlgError as exc:
         raise SurfaceError(f"surface fit: {len(xyz)} markers are degenerate (collinear or duplicated): {exc}") from None
 
 
-def _normals(f: RBFInterpolator, xy: np.ndarray) -> np.ndarray:
-    h = _FD_STEP_MM
-    ex, ey = np.array([h, 0.0]), np.array([0.0, h])
-    vals = f(np.concatenate([xy + ex, xy - ex, xy + ey, xy - ey]))
-    n = len(xy)
-    fx = (vals[:n] - vals[n:2 * n]) / (2 * h)
-    fy = (vals[2 * n:3 * n] - vals[3 * n:]) / (2 * h)
-    N = np.column_stack([-fx, -fy, np.ones(n)])
+def _normals(f: ThinPlateSpline) -> np.ndarray:
+    """Unit normals (-f_x, -f_y, 1) / |.| at the spline's centres."""
+    g = f.gradient()
+    N = np.column_stack([-g, np.ones(len(g))])
     return N / np.linalg.norm(N, axis=1, keepdims=True)
 
 
@@ -85,7 +157,7 @@ def skin_surface(cloud: MarkerCloud, design: SensorDesign, *, smoothing: float =
     benchmarks measure what the assumption costs. Needs at least :data:`MIN_MARKERS` markers.
     """
     f = fit_surface(cloud.xyz_mm, smoothing=smoothing)
-    N = _normals(f, cloud.xyz_mm[:, :2])
+    N = _normals(f)
     return SkinSurface(cloud.ids, cloud.xyz_mm + design.marker_depth_mm * N, N)
 
 
