@@ -440,11 +440,12 @@ _OFFSETS: dict[tuple, tuple] = {}
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather(img, ix, iy, dx, dy, out):
-    """``out[k] = img[iy + dy[k], ix + dx[k]]``, -1 outside the image; returns the count inside."""
+def _gather(img, ix, iy, dx, dy, k0, k1, out):
+    """``out[k] = img[iy + dy[k], ix + dx[k]]`` for k in [k0, k1), -1 outside the image; returns the
+    count inside."""
     h, w = img.shape
     n_in = 0
-    for k in range(len(dx)):
+    for k in range(k0, k1):
         x, y = ix + dx[k], iy + dy[k]
         if 0 <= x < w and 0 <= y < h:
             out[k] = img[y, x]
@@ -455,87 +456,103 @@ def _gather(img, ix, iy, dx, dy, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _median_inside(vals, buf):
-    """Median of the entries >= 0 of ``vals`` (NaN if none), ``buf`` a scratch array as long."""
+def _median_inside(vals, k0, k1, buf):
+    """Median of the entries >= 0 of ``vals[k0:k1]`` (NaN if none), ``buf`` a scratch array."""
     n = 0
-    for v in vals:
-        if v >= 0.0:
-            buf[n] = v
+    for k in range(k0, k1):
+        if vals[k] >= 0.0:
+            buf[n] = vals[k]
             n += 1
     if n == 0:
         return np.nan
-    v = buf[:n]
-    v.sort()
-    return 0.5 * (v[(n - 1) // 2] + v[n // 2])
+    return np.median(buf[:n])
 
 
 @numba.njit(cache=True, nogil=True)
-def _measure_kernel(img, cx, cy, lim, n_iter, sat_thr, rdx, rdy, starts, wdx, wdy, cdx, cdy,
-                    xy, contrast, sectors, sat, core_sat):
-    """Compiled per-candidate loop of :func:`_refine_and_measure` for candidates at (cx, cy), all of one radius.
+def _measure_kernel(img, cand, gid, n_iter, sat_thr, lims, ring_dx, ring_dy, ring_ptr, starts, win_dx, win_dy,
+                    win_ptr, core_dx, core_dy, core_ptr, xy, contrast, sectors, sat, core_sat):
+    """Compiled per-candidate loop of :func:`_refine_and_measure`.
 
+    Candidate ``i`` (x, y in ``cand[i, :2]``) uses the geometry of group ``g = gid[i]``: the pixel
+    offsets ``ring_dx[ring_ptr[g]:ring_ptr[g + 1]]`` (and likewise window and core), the ring's
+    sector boundaries ``starts[g]`` (absolute indices) and the centroid run-away limit ``lims[g]``.
     Writes the refined centres ``xy`` (N, 2), ``contrast``, ``sectors`` (N, 8), ``sat``, ``core_sat``.
-    Pixels outside the image read as -1: never ring or window light, never saturated.
+    Pixels outside the image read as -1: never ring or window light, never saturated. A centroid pass
+    depends only on the rounded centre it starts from, so the passes stop once that stops changing,
+    and the photometry reuses the first ring when the rounded centre is where it started (the result
+    is the same as doing all the work).
     """
-    ring = np.empty(len(rdx), np.float64)
-    buf = np.empty(len(rdx), np.float64)
-    win = np.empty(len(wdx), np.float64)
-    core = np.empty(len(cdx), np.float64)
-    for i in range(len(cx)):
-        x0, y0 = cx[i], cy[i]
-        _gather(img, int(np.rint(x0)), int(np.rint(y0)), rdx, rdy, ring)
-        bg = _median_inside(ring, buf)
-        bg = np.float64(np.float32(0.0 if np.isnan(bg) else bg))
+    h, w = img.shape
+    ring = np.empty(len(ring_dx), np.float64)
+    buf = np.empty(len(ring_dx), np.float64)
+    core = np.empty(len(core_dx), np.float64)
+    for i in range(len(cand)):
+        g = gid[i]
+        r0, r1, w0, w1, c0, c1 = ring_ptr[g], ring_ptr[g + 1], win_ptr[g], win_ptr[g + 1], core_ptr[g], core_ptr[g + 1]
+        x0, y0 = cand[i, 0], cand[i, 1]
+        ix0, iy0 = int(np.rint(x0)), int(np.rint(y0))
+        n_in = _gather(img, ix0, iy0, ring_dx, ring_dy, r0, r1, ring)
+        med0 = _median_inside(ring, r0, r1, buf)
+        if np.isnan(med0):
+            med0 = 0.0
+        bg = np.float64(np.float32(med0))
         x, y = x0, y0
+        pix, piy = -1 << 30, -1 << 30
         for _ in range(max(1, n_iter)):
             ix, iy = int(np.rint(x)), int(np.rint(y))
-            _gather(img, ix, iy, wdx, wdy, win)
+            if ix == pix and iy == piy:
+                break
+            pix, piy = ix, iy
             tot = 0.0
             mx = 0.0
             my = 0.0
-            for k in range(len(wdx)):
-                wt = win[k] - bg
-                if wt > 0.0:
-                    tot += wt
-                    mx += wt * wdx[k]
-                    my += wt * wdy[k]
+            for k in range(w0, w1):
+                u, v = ix + win_dx[k], iy + win_dy[k]
+                if 0 <= u < w and 0 <= v < h:
+                    wt = img[v, u] - bg
+                    if wt > 0.0:
+                        tot += wt
+                        mx += wt * win_dx[k]
+                        my += wt * win_dy[k]
             nx, ny = x, y
             if tot > 0.0:
                 nx, ny = ix + mx / tot, iy + my / tot
             # a centroid that runs away (neighbour or plateau in the window) keeps the DoH peak
-            if math.hypot(nx - x0, ny - y0) <= lim:
+            if math.hypot(nx - x0, ny - y0) <= lims[g]:
                 x, y = nx, ny
             else:
                 x, y = x0, y0
         xy[i, 0], xy[i, 1] = x, y
         # photometry about the refined centre
         ix, iy = int(np.rint(x)), int(np.rint(y))
-        n_in = _gather(img, ix, iy, rdx, rdy, ring)
-        bg = _median_inside(ring, buf)
-        if np.isnan(bg):
-            bg = 0.0
+        bg = med0
+        if ix != ix0 or iy != iy0:
+            n_in = _gather(img, ix, iy, ring_dx, ring_dy, r0, r1, ring)
+            bg = _median_inside(ring, r0, r1, buf)
+            if np.isnan(bg):
+                bg = 0.0
         n_sat = 0
-        for k in range(len(rdx)):
+        for k in range(r0, r1):
             if ring[k] >= sat_thr:
                 n_sat += 1
         sat[i] = n_sat / max(n_in, 1)
-        for s in range(len(starts) - 1):
+        for s in range(_SECTORS):
             cnt = 0
             acc = 0.0
-            for k in range(starts[s], starts[s + 1]):
+            for k in range(starts[g, s], starts[g, s + 1]):
                 if ring[k] >= 0.0:
                     cnt += 1
                     acc += ring[k]
             sectors[i, s] = (acc / cnt if cnt > 0 else -np.inf) - bg
-        _gather(img, ix, iy, cdx, cdy, core)
+        _gather(img, ix, iy, core_dx, core_dy, c0, c1, core)
         peak = -np.inf
         n_sat = 0
-        for k in range(len(cdx)):
+        for k in range(c0, c1):
             peak = max(peak, core[k])
             if core[k] >= sat_thr:
                 n_sat += 1
         contrast[i] = peak - bg
-        core_sat[i] = n_sat / len(cdx)
+        core_sat[i] = n_sat / (c1 - c0)
 
 
 def _refine_and_measure(grey_f: np.ndarray, cand: np.ndarray, params: DetectionParams):
@@ -560,19 +577,37 @@ def _refine_and_measure(grey_f: np.ndarray, cand: np.ndarray, params: DetectionP
     # grey level k is stored as float32(k / 255): compare half a level below to be exact
     sat_thr = float(np.float32((params.saturation_level - 0.5) / 255.0))
     n = len(cand)
-    xy = np.empty((n, 2))
-    sectors = np.empty((n, _SECTORS))
-    contrast, sat, core_sat = (np.empty(n) for _ in range(3))
-    for s in np.unique(cand[:, 5]):
-        g = np.nonzero(cand[:, 5] == s)[0]
-        r_blob = float(np.sqrt(2) * s)
-        out = (np.empty((len(g), 2)), np.empty(len(g)), np.empty((len(g), _SECTORS)), np.empty(len(g)),
-               np.empty(len(g)))
-        _measure_kernel(grey_f, np.ascontiguousarray(cand[g, 0]), np.ascontiguousarray(cand[g, 1]),
-                        0.5 * r_blob + 1.0, int(params.centroid_iterations), sat_thr,
-                        *_group_offsets(r_blob, params), *out)
-        xy[g], contrast[g], sectors[g], sat[g], core_sat[g] = out
-    return xy, contrast, sectors, sat, core_sat
+    scales, gid = np.unique(cand[:, 5], return_inverse=True)
+    out = (np.empty((n, 2)), np.empty(n), np.empty((n, _SECTORS)), np.empty(n), np.empty(n))
+    _measure_kernel(grey_f, cand, gid.astype(np.intp), int(params.centroid_iterations), sat_thr,
+                    *_offset_tables(tuple(scales.tolist()), params), *out)
+    return out
+
+
+def _offset_tables(scales: tuple[float, ...], params: DetectionParams):
+    """The :func:`_group_offsets` of every measuring scale, concatenated for :func:`_measure_kernel`:
+    run-away limits (G,), ring dx, dy, pointers (G + 1,), sector starts (G, 9) as absolute indices,
+    window dx, dy, pointers, core dx, dy, pointers. Cached per set of scales (a stream of frames
+    sees the same few)."""
+    key = (scales, params.centroid_radius_factor)
+    hit = _TABLES.get(key)
+    if hit is not None:
+        return hit
+    radii = [float(np.sqrt(2) * sc) for sc in scales]
+    groups = [_group_offsets(r, params) for r in radii]
+    ptr = lambda k: np.concatenate([[0], np.cumsum([len(gr[k]) for gr in groups])]).astype(np.intp)  # noqa: E731
+    cat = lambda k: np.concatenate([gr[k] for gr in groups]).astype(np.intp)                          # noqa: E731
+    ring_ptr = ptr(0)
+    starts = np.stack([gr[2] + ring_ptr[j] for j, gr in enumerate(groups)]).astype(np.intp)
+    hit = (np.array([0.5 * r + 1.0 for r in radii]), cat(0), cat(1), ring_ptr, starts,
+           cat(3), cat(4), ptr(3), cat(5), cat(6), ptr(5))
+    if len(_TABLES) > 64:
+        _TABLES.clear()
+    _TABLES[key] = hit
+    return hit
+
+
+_TABLES: dict[tuple, tuple] = {}
 
 
 def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: np.ndarray,
