@@ -332,52 +332,67 @@ def _candidates(grey_f: np.ndarray, params: DetectionParams):
     g = np.flatnonzero(peaks_all.view(np.bool_))  # 0/255 bytes; the bool view scans ~8x faster
     if g.size == 0:
         return np.empty((0, 6))
-    doh_all, lxx_all, lyy_all, lxy_all = packs
-    i_s = np.searchsorted(offs, g, side="right") - 1
-    w = ws[i_s]
-    ys, xs = np.divmod(g - offs[i_s], w)
-    # sub-pixel peak in the response (refined later on the full image)
-    c = doh_all[g].astype(np.float64)
-    xp, xm = doh_all[g + 1], doh_all[g - 1]
-    yp, ym = doh_all[g + w], doh_all[g - w]
-    dx = np.clip(0.5 * (xp - xm) / np.maximum(2 * c - xp - xm, 1e-12), -0.5, 0.5)
-    dy = np.clip(0.5 * (yp - ym) / np.maximum(2 * c - yp - ym, 1e-12), -0.5, 0.5)
-    # peak value of the fitted parabolas (a sample up to half a level px off the peak under-reads
-    # it, which would bias scale selection towards finer levels)
-    c = c + 0.25 * ((xp - xm) * dx + (yp - ym) * dy)
-    x_full = (xs + dx + 0.5) * fxs[i_s] - 0.5
-    y_full = (ys + dy + 0.5) * fys[i_s] - 0.5
+    return _peak_kernel(g, *packs, offs, hs, ws, fxs, fys, log_s)
 
-    def sample(k: np.ndarray) -> np.ndarray:
-        """Response of scale ``k`` at (x_full, y_full): its level pixel containing the point."""
-        ok = (k >= 0) & (k < n_s)
-        k = np.clip(k, 0, n_s - 1)
-        ok &= hs[k] > 0
-        # coordinates are inside the image (>= 0), so truncation floors
-        u = np.minimum(((x_full + 0.5) / fxs[k]).astype(np.intp), ws[k] - 1)
-        v = np.minimum(((y_full + 0.5) / fys[k]).astype(np.intp), np.maximum(hs[k] - 1, 0))
-        return np.where(ok, doh_all[np.where(ok, offs[k] + v * ws[k] + u, 0)], -np.inf)
 
-    lo, hi = sample(i_s - 1), sample(i_s + 1)
-    keep = (c >= lo) & (c >= hi)
-    c, lo, hi, x_full, y_full, g, i_s = (a[keep] for a in (c, lo, hi, x_full, y_full, g, i_s))
-    # continuous scale: parabola through the three responses on the log-sigma axis (the sqrt(2)
-    # grid is too coarse to place the background ring just outside the marker)
-    curv = lo - 2 * c + hi
-    inner = np.isfinite(lo) & np.isfinite(hi) & (curv < 0)
-    delta = np.zeros(len(c))
-    delta[inner] = np.clip(0.5 * (lo[inner] - hi[inner]) / curv[inner], -0.5, 0.5)
-    steps = np.diff(log_s)
-    step_dn = np.concatenate([[0.5], steps])[i_s]
-    step_up = np.concatenate([steps, [0.5]])[i_s]
-    s_cont = 2.0 ** (log_s[i_s] + delta * np.where(delta < 0, step_dn, step_up))
-    a, d, e = (p[g].astype(np.float64) for p in (lxx_all, lyy_all, lxy_all))
-    tr, det = a + d, a * d - e * e
-    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0))
-    l1, l2 = np.abs(tr / 2 - disc), np.abs(tr / 2 + disc)
-    elong = np.maximum(l1, l2) / np.maximum(np.minimum(l1, l2), 1e-12)
-    s_group = 2.0 ** (np.rint(8 * np.log2(s_cont)) / 8)
-    return np.column_stack([x_full, y_full, s_cont, c, elong, s_group])
+@numba.njit(cache=True, nogil=True)
+def _peak_kernel(g, doh, lxx, lyy, lxy, offs, hs, ws, fxs, fys, log_s):
+    """Sparse work of :func:`_candidates` on the spatial peaks ``g`` (flat indices into the packed
+    scale maps, scale by scale): sub-pixel peak, the cross-scale maximum test against the two
+    neighbouring scales sampled at the same place, the continuous scale, the elongation and the
+    measuring scale. Returns the (M, 6) candidates that pass, in the order of ``g``."""
+    n_s = len(log_s)
+    out = np.empty((len(g), 6))
+    m = 0
+    i_s = 0
+    for gi in g:
+        while gi >= offs[i_s + 1]:
+            i_s += 1
+        w = ws[i_s]
+        ys, xs = divmod(gi - offs[i_s], w)
+        # sub-pixel peak in the response (refined later on the full image); differences of float32
+        # samples are exact in float32, the rest in float64
+        c = np.float64(doh[gi])
+        dxp = np.float32(doh[gi + 1] - doh[gi - 1])
+        dyp = np.float32(doh[gi + w] - doh[gi - w])
+        dx = min(max(0.5 * dxp / max(2 * c - doh[gi + 1] - doh[gi - 1], 1e-12), -0.5), 0.5)
+        dy = min(max(0.5 * dyp / max(2 * c - doh[gi + w] - doh[gi - w], 1e-12), -0.5), 0.5)
+        # peak value of the fitted parabolas (a sample up to half a level px off the peak under-reads
+        # it, which would bias scale selection towards finer levels)
+        c = c + 0.25 * (dxp * dx + dyp * dy)
+        x_full = (xs + dx + 0.5) * fxs[i_s] - 0.5
+        y_full = (ys + dy + 0.5) * fys[i_s] - 0.5
+        # response of the neighbouring scales at (x_full, y_full): their level pixel containing it
+        nb = np.full(2, -np.inf)
+        for j in range(2):
+            k = i_s - 1 + 2 * j
+            if 0 <= k < n_s and hs[k] > 0:
+                u = min(int((x_full + 0.5) / fxs[k]), ws[k] - 1)     # coordinates are >= 0: truncation floors
+                v = min(int((y_full + 0.5) / fys[k]), max(hs[k] - 1, 0))
+                nb[j] = doh[offs[k] + v * ws[k] + u]
+        lo, hi = nb[0], nb[1]
+        if not (c >= lo and c >= hi):
+            continue
+        # continuous scale: parabola through the three responses on the log-sigma axis (the sqrt(2)
+        # grid is too coarse to place the background ring just outside the marker)
+        curv = lo - 2 * c + hi
+        delta = 0.0
+        if np.isfinite(lo) and np.isfinite(hi) and curv < 0:
+            delta = min(max(0.5 * (np.float32(lo) - np.float32(hi)) / curv, -0.5), 0.5)   # float32 samples
+        if delta < 0:
+            step = log_s[i_s] - log_s[i_s - 1] if i_s > 0 else 0.5
+        else:
+            step = log_s[i_s + 1] - log_s[i_s] if i_s < n_s - 1 else 0.5
+        s_cont = 2.0 ** (log_s[i_s] + delta * step)
+        a, d, e = np.float64(lxx[gi]), np.float64(lyy[gi]), np.float64(lxy[gi])
+        tr, det = a + d, a * d - e * e
+        disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
+        l1, l2 = abs(tr / 2 - disc), abs(tr / 2 + disc)
+        out[m, 0], out[m, 1], out[m, 2], out[m, 3] = x_full, y_full, s_cont, c
+        out[m, 4] = max(l1, l2) / max(min(l1, l2), 1e-12)
+        out[m, 5] = 2.0 ** (np.rint(8 * np.log2(s_cont)) / 8)
+        m += 1
+    return out[:m]
 
 
 def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
