@@ -31,7 +31,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
-from pipeline.triangulation import camera_poses, closest_points, pixels_to_rays
+from pipeline.triangulation import camera_poses, closest_points, matched_rays
 from pipeline.types import MarkerCloud, MarkerMatches, StereoCalibration
 
 __all__ = ["RefractionError", "snell", "refract_stack_rays", "correct_exact", "correct_linear",
@@ -108,7 +108,8 @@ def refract_stack_rays(origins: np.ndarray, dirs: np.ndarray, design: SensorDesi
 
 def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: SensorDesign, *,
                   n_gel: float | None = None, n_acrylic: float | None = None,
-                  return_gap: bool = False) -> MarkerCloud | tuple[MarkerCloud, np.ndarray]:
+                  return_gap: bool = False, rays: tuple[np.ndarray, ...] | None = None
+                  ) -> MarkerCloud | tuple[MarkerCloud, np.ndarray]:
     """True marker positions from matched pixels by exact ray tracing through the flat stack.
 
     Parameters
@@ -119,6 +120,8 @@ def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: Sens
         Cameras; ``sensor_from_left`` places them relative to the stack.
     design : SensorDesign
         Interface planes and refractive indices (``n_gel`` / ``n_acrylic`` override the indices).
+    rays : optional
+        :func:`pipeline.triangulation.matched_rays` of ``matches`` if already computed.
 
     Returns
     -------
@@ -140,9 +143,7 @@ def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: Sens
     if len(matches) == 0:
         empty = MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
         return (empty, np.empty(0)) if return_gap else empty
-    sfl, sfr = camera_poses(calib)
-    o1, d1 = pixels_to_rays(matches.left_px, calib.K1, calib.D1, sfl)
-    o2, d2 = pixels_to_rays(matches.right_px, calib.K2, calib.D2, sfr)
+    o1, d1, o2, d2 = matched_rays(matches, calib) if rays is None else rays
     p1, g1 = refract_stack_rays(o1, d1, design, n_gel=n_gel, n_acrylic=n_acrylic)
     p2, g2 = refract_stack_rays(o2, d2, design, n_gel=n_gel, n_acrylic=n_acrylic)
     with np.errstate(invalid="ignore"):

@@ -19,7 +19,7 @@ from pipeline.design import SensorDesign
 from pipeline.errors import UserError
 from pipeline.refraction import correct_exact, correct_linear
 from pipeline.surface import MIN_MARKERS, height_map, skin_surface
-from pipeline.triangulation import triangulate
+from pipeline.triangulation import matched_rays, triangulate
 from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
 
@@ -152,29 +152,31 @@ class Reconstructor:
         """Apparent cloud of the undeformed reference frame (linear model), once known."""
         return self._reference
 
-    def _stereo_check(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud]:
+    def _stereo_check(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud, tuple]:
         """Drop pairs that cannot be one marker: refracted rays more than :data:`STEREO_GATE_MM` apart,
         or a 3-D point outside the gel (closer than the acrylic, or more than :data:`STEREO_BULGE_MM`
         beyond the rest marker depth). Catches identity errors that differ between the two views
-        (e.g. a ring coded with different shifts). Returns the kept matches, the rejected ids, and the
+        (e.g. a ring coded with different shifts). Returns the kept matches, the rejected ids, the
         exactly refraction-corrected cloud of the kept matches (with the runner's index in exact mode,
-        the design's otherwise): the check has to trace the rays anyway, and each marker's rays are
-        traced independently, so this IS ``correct_exact`` of the kept matches."""
+        the design's otherwise) and their viewing rays (:func:`matched_rays`): the check has to trace
+        the rays anyway, and each marker's rays are traced independently, so the cloud IS
+        ``correct_exact`` of the kept matches."""
+        rays = matched_rays(matches, self.calib)
         if len(matches) == 0:
-            return matches, np.empty(0, np.int64), _empty_cloud()
+            return matches, np.empty(0, np.int64), _empty_cloud(), rays
         cloud, gap = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel if self.refraction == "exact"
-                                   else None, return_gap=True)
+                                   else None, return_gap=True, rays=rays)
         z = cloud.xyz_mm[:, 2]
         rest_z = self._rest_z[cloud.ids]
         ok = (gap <= STEREO_GATE_MM) & (z >= self.design.gel_acrylic_z_mm) & (z <= rest_z + STEREO_BULGE_MM)
         kept_cloud = cloud if ok.all() else MarkerCloud(cloud.ids[ok], cloud.xyz_mm[ok])
         good = np.isin(matches.ids, kept_cloud.ids)
         if good.all():
-            return matches, np.empty(0, np.int64), kept_cloud
+            return matches, np.empty(0, np.int64), kept_cloud, rays
         rejected = matches.ids[~good]
         kept = MarkerMatches(matches.ids[good], matches.left_px[good], matches.right_px[good],
                              np.union1d(matches.unmatched_ids, rejected))
-        return kept, rejected, kept_cloud
+        return kept, rejected, kept_cloud, tuple(r[good] for r in rays)
 
     def _match(self, frame: StereoFrame) -> tuple[MarkerMatches, tuple[int, int], dict[str, float]]:
         t0 = time.perf_counter()
@@ -201,13 +203,13 @@ class Reconstructor:
         notes: list[str] = []
         matches, n_blobs, timings = self._match(frame)
         t = time.perf_counter()
-        matches, rejected, exact_cloud = self._stereo_check(matches)
+        matches, rejected, exact_cloud, rays = self._stereo_check(matches)
         timings["stereo_check"] = 1e3 * (time.perf_counter() - t)
         if len(rejected):
             notes.append(f"stereo check rejected {len(rejected)} left/right pair(s) (ids "
                          + ",".join(map(str, rejected[:12])) + ("..." if len(rejected) > 12 else "") + ")")
         t = time.perf_counter()
-        apparent = triangulate(matches, self.calib)
+        apparent = triangulate(matches, self.calib, rays=rays)
         timings["triangulate"] = 1e3 * (time.perf_counter() - t)
         t = time.perf_counter()
         if self.refraction == "exact":

@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.types import MarkerCloud, MarkerMatches, StereoCalibration
 
-__all__ = ["triangulate", "camera_poses", "pixels_to_rays", "closest_points", "TriangulationError",
+__all__ = ["triangulate", "camera_poses", "pixels_to_rays", "matched_rays", "closest_points", "TriangulationError",
            "UNDISTORT_CRITERIA"]
 
 # cv2.undistortPoints iterates a fixed-point inversion of the lens model; the default 5 iterations
@@ -101,10 +101,18 @@ def closest_points(o1: np.ndarray, d1: np.ndarray, o2: np.ndarray, d2: np.ndarra
     return mid, gap
 
 
-def _general(matches: MarkerMatches, calib: StereoCalibration) -> np.ndarray:
+def matched_rays(matches: MarkerMatches, calib: StereoCalibration) -> tuple[np.ndarray, ...]:
+    """Viewing rays of every matched marker in both cameras, sensor frame: ``(o1, d1, o2, d2)``,
+    each (N, 3) (origins mm, unit directions), left then right (:func:`pixels_to_rays`). Computed
+    once per frame, they serve both :func:`triangulate` and the exact refraction correction."""
     sfl, sfr = camera_poses(calib)
     o1, d1 = pixels_to_rays(matches.left_px, calib.K1, calib.D1, sfl)
     o2, d2 = pixels_to_rays(matches.right_px, calib.K2, calib.D2, sfr)
+    return o1, d1, o2, d2
+
+
+def _general(matches: MarkerMatches, calib: StereoCalibration, rays=None) -> np.ndarray:
+    o1, d1, o2, d2 = matched_rays(matches, calib) if rays is None else rays
     mid, _ = closest_points(o1, d1, o2, d2)
     return mid
 
@@ -133,7 +141,8 @@ def _disparity(matches: MarkerMatches, calib: StereoCalibration) -> np.ndarray:
     return p_left @ calib.sensor_from_left[:3, :3].T + calib.sensor_from_left[:3, 3]
 
 
-def triangulate(matches: MarkerMatches, calib: StereoCalibration, *, method: str = "general") -> MarkerCloud:
+def triangulate(matches: MarkerMatches, calib: StereoCalibration, *, method: str = "general",
+                rays: tuple[np.ndarray, ...] | None = None) -> MarkerCloud:
     """Triangulate matched markers to apparent 3-D positions in the sensor frame.
 
     Parameters
@@ -144,6 +153,8 @@ def triangulate(matches: MarkerMatches, calib: StereoCalibration, *, method: str
         Intrinsics, distortion, left→right (R, T) and ``sensor_from_left``.
     method : {"general", "disparity"}
         Ray midpoint with the full extrinsics, or the paper's rectified-disparity formulas.
+    rays : optional
+        :func:`matched_rays` of ``matches`` if already computed ("general" only).
 
     Returns
     -------
@@ -161,6 +172,8 @@ def triangulate(matches: MarkerMatches, calib: StereoCalibration, *, method: str
         raise TriangulationError(f"triangulate: unknown method {method!r}; choose one of {METHODS}")
     if len(matches) == 0:
         return MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
-    xyz = _general(matches, calib) if method == "general" else _disparity(matches, calib)
+    if rays is not None and method != "general":
+        raise TriangulationError("triangulate: precomputed rays serve the 'general' method only")
+    xyz = _general(matches, calib, rays) if method == "general" else _disparity(matches, calib)
     ok = np.all(np.isfinite(xyz), axis=1)
     return MarkerCloud(matches.ids[ok], xyz[ok])

@@ -12,6 +12,7 @@ from pipeline.design import load_design
 from pipeline.latency import run_latency
 from pipeline.refraction import correct_exact, project_through_stack
 from pipeline.runner import Reconstructor, RunnerError, reconstruct
+from pipeline.triangulation import matched_rays
 from pipeline.types import DataError, StereoFrame
 from synth_frames import chessboard_pairs, gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
@@ -226,12 +227,14 @@ def test_stereo_check_rejects_pairs_that_cannot_be_one_marker():
         near = (dist > 0.5 * design.pattern.separation_mm) & (dist < 1.5 * design.pattern.separation_mm)
         j = np.flatnonzero(near)[np.argmax(np.abs(d[near, 1]) - np.abs(d[near, 0]))]
         right[np.searchsorted(matches.ids, i)] = matches.right_px[np.searchsorted(matches.ids, j)]
-    kept, rejected, cloud = rec._stereo_check(MarkerMatches(matches.ids, matches.left_px, right))
+    kept, rejected, cloud, rays = rec._stereo_check(MarkerMatches(matches.ids, matches.left_px, right))
     assert set(rejected.tolist()) == set(chosen)
     assert set(chosen) <= set(kept.unmatched_ids.tolist()) and len(kept) == design.marker_count - len(chosen)
     assert STEREO_GATE_MM < 0.5 * design.pattern.separation_mm
     # the cloud it returns is the exact correction of the kept pairs (the runner reuses it)
     ref = correct_exact(kept, calib, design)
     assert np.array_equal(cloud.ids, ref.ids) and np.array_equal(cloud.xyz_mm, ref.xyz_mm)
-    kept_all, none, _ = rec._stereo_check(matches)    # true pairs all pass
+    # ... and its rays are the kept pairs' own (the runner triangulates with them)
+    assert all(np.array_equal(a, b) for a, b in zip(rays, matched_rays(kept, calib)))
+    kept_all, none, _, _ = rec._stereo_check(matches)    # true pairs all pass
     assert len(none) == 0 and len(kept_all) == design.marker_count
