@@ -233,25 +233,54 @@ def _half(img: np.ndarray, name: str) -> np.ndarray:
     return cv2.resize(src, (w2, h2), dst=_Workspace.get(name, (h2, w2)), interpolation=cv2.INTER_AREA)
 
 
-def _level(grey_f: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, float]:
-    """Half-octave pyramid level ``j``: the image area-reduced ~``sqrt(2)**j`` times.
+#: Grey level k of a uint8 image is the float32 ``k * _U8_SCALE`` on the [0, 1] scale.
+_U8_SCALE = np.float32(1.0 / 255.0)
 
-    Level ``j`` is the exact 2x2 mean of level ``j - 2``, except the odd bases: level 3 is an
-    INTER_AREA resize of level 2 by 1/sqrt(2) (level 1, used only for scales below ~1.4 px, one of the
-    full image). Returns (image, fx, fy): level pixel ``(i_x, i_y)`` is centred at full pixel
-    ``((i_x + 0.5) fx - 0.5, (i_y + 0.5) fy - 0.5)``.
+
+def _grey_float(grey: np.ndarray) -> np.ndarray:
+    """The uint8 image on the [0, 1] scale as float32 (a reused buffer)."""
+    out = _Workspace.get("grey_f", grey.shape)
+    np.multiply(grey, _U8_SCALE, out=out, casting="unsafe")
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _half_u8(grey, out):
+    """2x2 mean of a uint8 image on the [0, 1] scale (odd last row/column dropped) into ``out``:
+    the integer sum of the four, scaled once."""
+    scale = np.float32(0.25 / 255.0)
+    for y in range(out.shape[0]):
+        for x in range(out.shape[1]):
+            s = (np.int32(grey[2 * y, 2 * x]) + np.int32(grey[2 * y, 2 * x + 1])
+                 + np.int32(grey[2 * y + 1, 2 * x]) + np.int32(grey[2 * y + 1, 2 * x + 1]))
+            out[y, x] = np.float32(s) * scale
+    return out
+
+
+def _level(grey: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, float]:
+    """Half-octave pyramid level ``j`` of the uint8 image ``grey``: the image area-reduced
+    ~``sqrt(2)**j`` times, float32 on the [0, 1] scale.
+
+    Level ``j`` is the exact 2x2 mean of level ``j - 2`` (level 2 straight from the uint8 pixels, so
+    the full-resolution float image is never made unless level 0 or 1 is asked for), except the odd
+    bases: level 3 is an INTER_AREA resize of level 2 by 1/sqrt(2) (level 1, used only for scales
+    below ~1.4 px, one of the full image). Returns (image, fx, fy): level pixel ``(i_x, i_y)`` is
+    centred at full pixel ``((i_x + 0.5) fx - 0.5, (i_y + 0.5) fy - 0.5)``.
     """
     if j not in cache:
         if j == 0:
-            cache[0] = (grey_f, 1.0, 1.0)
+            cache[0] = (_grey_float(grey), 1.0, 1.0)
+        elif j == 2 and min(grey.shape) >= 10:
+            h2, w2 = grey.shape[0] // 2, grey.shape[1] // 2
+            cache[2] = (_half_u8(grey, _Workspace.get("lvl2", (h2, w2))), 2.0, 2.0)
         elif j in (1, 3):
-            prev, px, py = _level(grey_f, j - 1 if j == 1 else 2, cache)
+            prev, px, py = _level(grey, j - 1 if j == 1 else 2, cache)
             h, w = prev.shape
             w1, h1 = max(1, int(round(w / math.sqrt(2)))), max(1, int(round(h / math.sqrt(2))))
             img = cv2.resize(prev, (w1, h1), dst=_Workspace.get(f"lvl{j}", (h1, w1)), interpolation=cv2.INTER_AREA)
             cache[j] = (img, px * w / w1, py * h / h1)
         else:
-            prev, fx, fy = _level(grey_f, j - 2, cache)
+            prev, fx, fy = _level(grey, j - 2, cache)
             if min(prev.shape) < 10:
                 cache[j] = cache[j - 2]
             else:
@@ -272,7 +301,7 @@ _LEVEL_SIGMA = 0.95
 _MIN_HALF_SIGMA = 0.69
 
 
-def _candidates(grey_f: np.ndarray, params: DetectionParams):
+def _candidates(grey: np.ndarray, params: DetectionParams):
     """Scale-space maxima: (N, 6) array of x_full, y_full, sigma_full (continuous), response,
     elongation, measuring scale (sigma quantised to 1/8 octave, shared pixel offsets per group).
 
@@ -294,7 +323,7 @@ def _candidates(grey_f: np.ndarray, params: DetectionParams):
     cache: dict = {}
     levels = []
     for j in level_of:
-        level, fx, fy = _level(grey_f, int(j), cache)
+        level, fx, fy = _level(grey, int(j), cache)
         levels.append((level, fx, fy) if min(level.shape) >= 5 else None)
     hs = np.array([lv[0].shape[0] if lv else 0 for lv in levels], np.intp)
     ws = np.array([lv[0].shape[1] if lv else 1 for lv in levels], np.intp)
@@ -456,14 +485,14 @@ _OFFSETS: dict[tuple, tuple] = {}
 
 @numba.njit(cache=True, nogil=True)
 def _gather(img, ix, iy, dx, dy, k0, k1, out):
-    """``out[k] = img[iy + dy[k], ix + dx[k]]`` for k in [k0, k1), -1 outside the image; returns the
-    count inside."""
+    """``out[k]`` = pixel ``(ix + dx[k], iy + dy[k])`` of the uint8 ``img`` on the [0, 1] scale for k
+    in [k0, k1), -1 outside the image; returns the count inside."""
     h, w = img.shape
     n_in = 0
     for k in range(k0, k1):
         x, y = ix + dx[k], iy + dy[k]
         if 0 <= x < w and 0 <= y < h:
-            out[k] = img[y, x]
+            out[k] = np.float32(img[y, x]) * _U8_SCALE
             n_in += 1
         else:
             out[k] = -1.0
@@ -524,7 +553,7 @@ def _measure_kernel(img, cand, gid, n_iter, sat_thr, lims, ring_dx, ring_dy, rin
             for k in range(w0, w1):
                 u, v = ix + win_dx[k], iy + win_dy[k]
                 if 0 <= u < w and 0 <= v < h:
-                    wt = img[v, u] - bg
+                    wt = np.float32(img[v, u]) * _U8_SCALE - bg
                     if wt > 0.0:
                         tot += wt
                         mx += wt * win_dx[k]
@@ -570,7 +599,7 @@ def _measure_kernel(img, cand, gid, n_iter, sat_thr, lims, ring_dx, ring_dy, rin
         core_sat[i] = n_sat / (c1 - c0)
 
 
-def _refine_and_measure(grey_f: np.ndarray, cand: np.ndarray, params: DetectionParams):
+def _refine_and_measure(grey: np.ndarray, cand: np.ndarray, params: DetectionParams):
     """Sub-pixel centroids and local photometry per candidate.
 
     Per candidate the background is the median of a ring about it (robust to the candidate being a
@@ -594,7 +623,7 @@ def _refine_and_measure(grey_f: np.ndarray, cand: np.ndarray, params: DetectionP
     n = len(cand)
     scales, gid = np.unique(cand[:, 5], return_inverse=True)
     out = (np.empty((n, 2)), np.empty(n), np.empty((n, _SECTORS)), np.empty(n), np.empty(n))
-    _measure_kernel(grey_f, cand, gid.astype(np.intp), int(params.centroid_iterations), sat_thr,
+    _measure_kernel(grey, cand, gid.astype(np.intp), int(params.centroid_iterations), sat_thr,
                     *_offset_tables(tuple(scales.tolist()), params), *out)
     return out
 
@@ -666,7 +695,7 @@ def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers:
     return spread, crowded
 
 
-def _split_centroids(grey_f: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
+def _split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
                      peers: np.ndarray, params: DetectionParams) -> np.ndarray:
     """Centroids of touching markers with each neighbour's light excluded.
 
@@ -681,7 +710,7 @@ def _split_centroids(grey_f: np.ndarray, xy: np.ndarray, radius: np.ndarray, whi
         return out
     idx = np.nonzero(peers)[0]
     tree = cKDTree(xy[idx])
-    h, w = grey_f.shape
+    h, w = grey.shape
     for i in np.nonzero(which)[0]:
         r = float(radius[i])
         r_win = params.centroid_radius_factor * r + 0.5
@@ -695,7 +724,7 @@ def _split_centroids(grey_f: np.ndarray, xy: np.ndarray, radius: np.ndarray, whi
             own = d2 <= r_win * r_win
             for j in nb:
                 own &= d2 < (gx - xy[j, 0]) ** 2 + (gy - xy[j, 1]) ** 2
-            v = grey_f[y0:y1 + 1, x0:x1 + 1].astype(np.float64)
+            v = (grey[y0:y1 + 1, x0:x1 + 1] * _U8_SCALE).astype(np.float64)
             ring = own & (d2 >= (_RING_IN * r) ** 2)
             bg = float(np.median(v[ring])) if ring.any() else 0.0
             wts = np.where(own, np.maximum(v - bg, 0.0), 0.0)
@@ -742,13 +771,11 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
     grey = to_grey(image)
     if grey.size == 0 or min(grey.shape) < 8:
         return Blobs.empty()
-    grey_f = _Workspace.get("grey_f", grey.shape)
-    np.multiply(grey, np.float32(1.0 / 255.0), out=grey_f, casting="unsafe")
-    cand = _candidates(grey_f, params)
+    cand = _candidates(grey, params)
     cand = _suppress(cand, params.min_separation_px)
     if len(cand) == 0:
         return Blobs.empty()
-    xy, contrast, sectors, sat, core_sat = _refine_and_measure(grey_f, cand, params)
+    xy, contrast, sectors, sat, core_sat = _refine_and_measure(grey, cand, params)
     keep = contrast >= params.min_contrast
     if params.rejections:
         keep &= cand[:, 4] <= params.max_elongation
@@ -766,7 +793,7 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
                                            keep & (~isolated | small))
             keep &= (spread <= limit) & big_ok
             keep &= ~small | (crowded & (cand[:, 2] >= med / params.max_size_ratio ** 2))
-            xy = _split_centroids(grey_f, xy, np.sqrt(2) * cand[:, 5], keep & crowded, keep & big_ok, params)
+            xy = _split_centroids(grey, xy, np.sqrt(2) * cand[:, 5], keep & crowded, keep & big_ok, params)
             if np.median(core_sat[keep]) < 0.5:
                 keep &= core_sat <= 0.3
         else:
