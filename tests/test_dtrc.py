@@ -225,3 +225,96 @@ def test_mesh_boundary_from_neighbour_table_matches_edge_counting():
         got = {tuple(sorted((int(mesh.tris[a, k]), int(mesh.tris[a, (k + 1) % 3])))) for a, k in zip(tt, kk)}
         assert got == expected
         assert {tuple(x) for x in mesh.edges(alive, len(pts)).tolist()} == {tuple(x) for x in uniq.tolist()}
+
+
+def _peel_reference(pts, active, n_rings, med_edge):
+    """The numpy definition of peeling (on :class:`_Mesh`) that the compiled kernel implements."""
+    from pipeline.dtrc import _Mesh
+
+    idx = np.nonzero(active)[0]
+    n = len(pts)
+    mesh = _Mesh(pts, idx, med_edge)
+    tris = mesh.tris
+    alive, on_b = mesh.carve(np.ones(len(tris), bool))
+    edges = mesh.edges(alive, n)
+    remaining = np.zeros(n, bool)
+    remaining[idx] = True
+    rings = []
+    for _ in range(n_rings):
+        rem = np.nonzero(remaining)[0]
+        if len(rem) == 0:
+            break
+        in_tri, ring_mask = np.zeros(n, bool), np.zeros(n, bool)
+        if alive.any():
+            in_tri[tris[alive].ravel()] = True
+            t, k = np.nonzero(on_b)
+            ring_mask[tris[t, k]] = True
+            ring_mask[tris[t, (k + 1) % 3]] = True
+        ring_mask |= remaining & ~in_tri
+        ring_idx = np.nonzero(ring_mask & remaining)[0]
+        if len(ring_idx) == 0:
+            break
+        c = pts[rem].sum(axis=0) / len(rem)
+        rings.append(ring_idx[np.argsort(np.arctan2(pts[ring_idx, 1] - c[1], pts[ring_idx, 0] - c[0]), kind="stable")])
+        remaining[ring_idx] = False
+        if alive.any():
+            alive &= ~ring_mask[tris].any(axis=1)
+            alive, on_b = mesh.carve(alive)
+    return rings, edges
+
+
+def test_compiled_kernels_match_their_numpy_definitions():
+    """The compiled per-frame path against the definitions it replaced, on random inputs: the
+    certified sweep-hull triangulation is Qhull's (same triangles and neighbours), exact lattices fall
+    back to Qhull, the peel kernel equals the numpy peel on :class:`_Mesh`, and the cyclic shift coder
+    equals its vectorised definition."""
+    from scipy.spatial import Delaunay
+
+    from pipeline.dtrc import _delaunay, _peel, _shift_code, _triangulate
+
+    def canon(simp, nb):
+        key = [tuple(sorted(t)) for t in simp.tolist()]
+        return {key[t]: {(frozenset(simp[t].tolist()) - {int(simp[t, k])}, key[j] if j >= 0 else None)
+                         for k, j in enumerate(nb[t].tolist())} for t in range(len(simp))}
+
+    rng = np.random.default_rng(33)
+    names = ["hexagon127", "square121", "circular217_dome"]
+    for trial in range(30):
+        design = load_design(names[trial % 3])
+        uv = _view(design, rng, rot_deg=rng.uniform(-20, 20), bulge=rng.uniform(0, 0.3), persp=0.05,
+                   noise=rng.choice([0.05, 0.2, 2.0]))
+        uv = np.delete(uv, rng.choice(len(uv), int(rng.integers(0, 6)), replace=False), axis=0)
+        if trial % 2:
+            uv = np.vstack([uv, rng.uniform(uv.min(0) - 30, uv.max(0) + 30, (int(rng.integers(1, 4)), 2))])
+        simp, nb, certified = _delaunay(uv)
+        assert certified
+        q = Delaunay(uv)
+        assert canon(simp, nb) == canon(q.simplices, q.neighbors)
+        active = rng.random(len(uv)) < (1.0 if trial % 3 else 0.95)
+        med = float(np.median(np.linalg.norm(uv[1:] - uv[:-1], axis=1)))
+        rings, edges = _peel(uv, active, design.pattern.layers, med,
+                             _triangulate(uv) if active.all() else None)
+        ref_rings, ref_edges = _peel_reference(uv, active, design.pattern.layers, med)
+        assert len(rings) == len(ref_rings)
+        for a, b in zip(rings, ref_rings):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(edges, ref_edges)
+    exact = load_design("hexagon127").rest_markers_mm()[:, :2] * 10.0
+    assert not _delaunay(exact)[2]  # co-circular lattice points: Qhull decides
+
+    wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
+    for _ in range(200):
+        n = int(rng.choice([6, 8, 12, 18, 24, 36, 48]))
+        psi = wrap(np.linspace(-np.pi, np.pi, n, endpoint=False) + rng.uniform(-np.pi, np.pi))
+        theta = rng.uniform(-0.5, 0.5)
+        phi = np.sort(wrap(np.roll(psi, int(rng.integers(n))) + theta + rng.normal(0, rng.choice([0.01, 0.3]), n)))
+        shifts = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
+        r = wrap(phi[shifts] - psi[None, :] - theta)
+        z = (np.exp(1j * phi)[shifts] @ np.exp(-1j * psi)) * complex(np.cos(theta), -np.sin(theta))
+        m = np.arctan2(z.imag / n, z.real / n)
+        dev = wrap(r - m[:, None])
+        cost = np.einsum("ij,ij->i", dev, dev) + n * m * m
+        s = int(np.argmin(cost))
+        got = _shift_code(phi, psi, theta)
+        assert got[0] == s or np.isclose(cost[got[0]], cost[s], rtol=1e-12)
+        np.testing.assert_allclose(got[1:], (theta + m[got[0]], np.max(np.abs(dev[got[0]]))), atol=1e-12)
