@@ -21,6 +21,7 @@ StereoTacTip paper, Sec. "Marker Localization" (greyscale, Determinant of Hessia
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from dataclasses import dataclass, field, replace
@@ -249,12 +250,69 @@ def _half_u8(grey, out):
     """2x2 mean of a uint8 image on the [0, 1] scale (odd last row/column dropped) into ``out``:
     the integer sum of the four, scaled once."""
     scale = np.float32(0.25 / 255.0)
-    for y in range(out.shape[0]):
-        for x in range(out.shape[1]):
-            s = (np.int32(grey[2 * y, 2 * x]) + np.int32(grey[2 * y, 2 * x + 1])
-                 + np.int32(grey[2 * y + 1, 2 * x]) + np.int32(grey[2 * y + 1, 2 * x + 1]))
-            out[y, x] = np.float32(s) * scale
+    h2, w2 = out.shape
+    pairs = np.empty(2 * w2, np.int32)
+    for y in range(h2):
+        # row by row (vectorises also on a strided view, e.g. one half of a stereo frame)
+        r0, r1 = grey[2 * y], grey[2 * y + 1]
+        for x in range(2 * w2):
+            pairs[x] = np.int32(r0[x]) + np.int32(r1[x])
+        for x in range(w2):
+            out[y, x] = np.float32(pairs[2 * x] + pairs[2 * x + 1]) * scale
     return out
+
+
+@functools.lru_cache(maxsize=32)
+def _area_table(ssize: int, dsize: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Area-resampling weights from ``ssize`` to ``dsize`` samples, as OpenCV's INTER_AREA computes
+    them (computeResizeAreaTab): each output cell averages the input cells it overlaps, weighted by
+    the overlap. Returns (source index, float32 weight, pointer (dsize + 1,)) in CSR form."""
+    scale = ssize / dsize
+    idx, wts, ptr = [], [], [0]
+    for d in range(dsize):
+        f1 = d * scale
+        f2 = f1 + scale
+        cell = min(scale, ssize - f1)
+        s2 = min(math.floor(f2), ssize - 1)
+        s1 = min(math.ceil(f1), s2)
+        if s1 - f1 > 1e-3:
+            idx.append(s1 - 1)
+            wts.append((s1 - f1) / cell)
+        for k in range(s1, s2):
+            idx.append(k)
+            wts.append(1.0 / cell)
+        if f2 - s2 > 1e-3:
+            idx.append(s2)
+            wts.append(min(f2 - s2, 1.0, cell) / cell)
+        ptr.append(len(idx))
+    return np.array(idx, np.intp), np.array(wts, np.float32), np.array(ptr, np.intp)
+
+
+@numba.njit(cache=True, nogil=True)
+def _area_resize_kernel(src, xi, xw, xp, yi, yw, yp, out):
+    """Separable area resampling of ``src`` into ``out`` with :func:`_area_table` weights: rows
+    first (contiguous, vectorised), then the columns of the combined row; float32 throughout."""
+    row = np.empty(src.shape[1], np.float32)
+    for y in range(out.shape[0]):
+        row[:] = 0.0
+        for k in range(yp[y], yp[y + 1]):
+            wk, r = yw[k], yi[k]
+            for x in range(src.shape[1]):
+                row[x] += wk * src[r, x]
+        for x in range(out.shape[1]):
+            acc = np.float32(0.0)
+            for k in range(xp[x], xp[x + 1]):
+                acc += xw[k] * row[xi[k]]
+            out[y, x] = acc
+    return out
+
+
+def _area_resize(src: np.ndarray, w1: int, h1: int, name: str) -> np.ndarray:
+    """``src`` (float32) area-resampled to ``(h1, w1)`` into a reused buffer: OpenCV's INTER_AREA
+    (within 2e-7 on [0, 1] images; tests/test_detection.py) at about 2/3 of its cost for the
+    non-integer sqrt(2) reduction, where OpenCV takes its general path."""
+    return _area_resize_kernel(src, *_area_table(src.shape[1], w1), *_area_table(src.shape[0], h1),
+                               _Workspace.get(name, (h1, w1)))
 
 
 def _level(grey: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, float]:
@@ -277,7 +335,7 @@ def _level(grey: np.ndarray, j: int, cache: dict) -> tuple[np.ndarray, float, fl
             prev, px, py = _level(grey, j - 1 if j == 1 else 2, cache)
             h, w = prev.shape
             w1, h1 = max(1, int(round(w / math.sqrt(2)))), max(1, int(round(h / math.sqrt(2))))
-            img = cv2.resize(prev, (w1, h1), dst=_Workspace.get(f"lvl{j}", (h1, w1)), interpolation=cv2.INTER_AREA)
+            img = _area_resize(prev, w1, h1, f"lvl{j}")
             cache[j] = (img, px * w / w1, py * h / h1)
         else:
             prev, fx, fy = _level(grey, j - 2, cache)
