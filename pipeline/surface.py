@@ -18,7 +18,12 @@ StereoTacTip paper, Sec. "Skin Surface Reconstruction", Eq. (9)-(10).
 
 from __future__ import annotations
 
+import math
+import warnings
+
+import numba
 import numpy as np
+import scipy.linalg
 from scipy.spatial import Delaunay, QhullError
 
 from pipeline.design import SensorDesign
@@ -39,6 +44,47 @@ class SurfaceError(UserError, ValueError):
     """Too few or degenerate markers to fit a surface."""
 
 
+@numba.njit(cache=True, nogil=True)
+def _tps_system(xy, tail, smoothing, lhs, log_r2):
+    """Fill the (N + 3)^2 spline system ``[[K + s I, P], [P^T, 0]]`` (K_ij = r^2 log r, P = ``tail``)
+    and ``log_r2`` (N, N) = log(r_ij^2), 0 on the diagonal; one logarithm per pair."""
+    n = len(xy)
+    for i in range(n):
+        lhs[i, i] = smoothing
+        log_r2[i, i] = 0.0
+        for j in range(i + 1, n):
+            dx, dy = xy[i, 0] - xy[j, 0], xy[i, 1] - xy[j, 1]
+            r2 = dx * dx + dy * dy
+            lg = math.log(r2) if r2 > 0 else 0.0
+            k = 0.5 * r2 * lg                                  # r**2 log r = r2 log(r2) / 2
+            lhs[i, j] = k
+            lhs[j, i] = k
+            log_r2[i, j] = lg
+            log_r2[j, i] = lg
+        for c in range(3):
+            lhs[i, n + c] = tail[i, c]
+            lhs[n + c, i] = tail[i, c]
+    for a in range(3):
+        for b in range(3):
+            lhs[n + a, n + b] = 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _tps_gradient_at_centres(xy, log_r2, w):
+    """Kernel part of the spline gradient at its own centres: sum_j w_j (x_i - x_j)(log r_ij^2 + 1)."""
+    n = len(xy)
+    out = np.zeros((n, 2))
+    for i in range(n):
+        gx = 0.0
+        gy = 0.0
+        for j in range(n):
+            g = (log_r2[i, j] + 1.0) * w[j]
+            gx += g * (xy[i, 0] - xy[j, 0])
+            gy += g * (xy[i, 1] - xy[j, 1])
+        out[i, 0], out[i, 1] = gx, gy
+    return out
+
+
 class ThinPlateSpline:
     """Smoothing thin-plate spline z = f(x, y) with a linear tail, and its analytic gradient.
 
@@ -47,7 +93,8 @@ class ThinPlateSpline:
     shifted and scaled to [-1, 1] for conditioning; tests/test_surface.py compares the two), solved
     directly: at the pipeline's sizes (<= a few hundred markers) scipy's general machinery costs more
     than the fit, and the normals needed four extra evaluations per marker for finite differences.
-    ``gradient`` is exact, and at the centres it reuses the fit's pairwise logarithms.
+    ``gradient`` is exact, and at the centres it reuses the fit's pairwise logarithms. The system and
+    the gradient at the centres are compiled loops (one logarithm per pair, no (N, N) temporaries).
     """
 
     _CHUNK = 4096  # query points evaluated at a time (bounds the (chunk, N) blocks)
@@ -62,15 +109,18 @@ class ThinPlateSpline:
         tail = self._tail(xy)
         if np.linalg.matrix_rank(tail) < 3:
             raise np.linalg.LinAlgError("the points are collinear: the linear tail is not determined")
-        self._at_centres = self._pairwise(xy)
-        dx, dy, r2, lg = self._at_centres
-        lhs = np.zeros((n + 3, n + 3))
-        lhs[:n, :n] = 0.5 * r2 * lg
-        lhs[np.arange(n), np.arange(n)] += smoothing
-        lhs[:n, n:] = tail
-        lhs[n:, :n] = tail.T
+        lhs = np.empty((n + 3, n + 3))
+        self._log_r2 = np.empty((n, n))
+        _tps_system(xy, tail, float(smoothing), lhs, self._log_r2)
         rhs = np.concatenate([np.asarray(z, dtype=np.float64), np.zeros(3)])
-        sol = np.linalg.solve(lhs, rhs)
+        # symmetric system: its transpose is the Fortran-ordered array LAPACK wants, factorised in place
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
+            try:
+                lu = scipy.linalg.lu_factor(lhs.T, overwrite_a=True, check_finite=False)
+            except scipy.linalg.LinAlgWarning as exc:       # an exactly zero pivot
+                raise np.linalg.LinAlgError(str(exc)) from None
+        sol = scipy.linalg.lu_solve(lu, rhs, overwrite_b=True, check_finite=False)
         if not np.all(np.isfinite(sol)):
             raise np.linalg.LinAlgError("the spline system is singular (duplicated points?)")
         self._w, self._a = sol[:n], sol[n:]
@@ -99,19 +149,14 @@ class ThinPlateSpline:
         """(df/dx, df/dy) at query points (M, 2), default the centres: grad phi = (x - c)(2 log r + 1),
         which vanishes at r = 0 with x - c."""
         if q is None:
-            blocks = [self._at_centres]
-            n_q = len(self.centres)
-        else:
-            q = np.asarray(q, dtype=np.float64).reshape(-1, 2)
-            blocks = (self._pairwise(q[k:k + self._CHUNK]) for k in range(0, len(q), self._CHUNK))
-            n_q = len(q)
-        out = np.empty((n_q, 2))
-        k = 0
-        for dx, dy, _, lg in blocks:
+            return _tps_gradient_at_centres(self.centres, self._log_r2, self._w) + self._a[1:] / self._scale
+        q = np.asarray(q, dtype=np.float64).reshape(-1, 2)
+        out = np.empty((len(q), 2))
+        for k in range(0, len(q), self._CHUNK):
+            dx, dy, _, lg = self._pairwise(q[k:k + self._CHUNK])
             g = lg + 1.0
             out[k:k + len(dx), 0] = (g * dx) @ self._w
             out[k:k + len(dx), 1] = (g * dy) @ self._w
-            k += len(dx)
         return out + self._a[1:] / self._scale
 
 
