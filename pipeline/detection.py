@@ -486,18 +486,31 @@ def _suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
     """Cross-scale NMS: drop a candidate when a stronger one lies within ``max(min_sep, r_i, r_j)``."""
     if len(cand) < 2:
         return cand
-    radius = np.maximum(min_sep, np.sqrt(2) * cand[:, 2])
-    pairs = cKDTree(cand[:, :2]).query_pairs(float(radius.max()), output_type="ndarray")
-    if len(pairs) == 0:
-        return cand
-    i, j = pairs[:, 0], pairs[:, 1]
-    d = np.hypot(*(cand[i, :2] - cand[j, :2]).T)
-    close = d < np.maximum(radius[i], radius[j])
-    i, j = i[close], j[close]
-    weaker = np.where(cand[i, 3] >= cand[j, 3], j, i)
-    keep = np.ones(len(cand), bool)
-    keep[weaker] = False
-    return cand[keep]
+    return cand[_suppress_kernel(cand, float(min_sep))]
+
+
+@numba.njit(cache=True, nogil=True)
+def _suppress_kernel(cand, min_sep):
+    """Keep mask of :func:`_suppress`: for every pair closer than the larger of their radii
+    (``max(min_sep, sqrt(2) sigma)``) the weaker (ties: the later) is dropped, whether or not the
+    stronger survives. Pairs are found along x-sorted candidates within the largest radius."""
+    n = len(cand)
+    radius = np.empty(n)
+    for i in range(n):
+        radius[i] = max(min_sep, math.sqrt(2.0) * cand[i, 2])
+    r_max = radius.max()
+    order = np.argsort(cand[:, 0])
+    keep = np.ones(n, np.bool_)
+    for a in range(n):
+        i = order[a]
+        for b in range(a + 1, n):
+            j = order[b]
+            if cand[j, 0] - cand[i, 0] > r_max:
+                break
+            if math.hypot(cand[i, 0] - cand[j, 0], cand[i, 1] - cand[j, 1]) < max(radius[i], radius[j]):
+                lo, hi = min(i, j), max(i, j)
+                keep[hi if cand[lo, 3] >= cand[hi, 3] else lo] = False
+    return keep
 
 
 def _patch_offsets(rmax: int) -> tuple[np.ndarray, np.ndarray]:
