@@ -23,7 +23,8 @@ from pipeline.triangulation import matched_rays, triangulate
 from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
 
-__all__ = ["Reconstructor", "FrameResult", "reconstruct", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
+__all__ = ["Reconstructor", "FrameResult", "reconstruct", "compile_kernels", "RunnerError", "REFRACTION_MODES",
+           "TRACKERS"]
 
 REFRACTION_MODES = ("exact", "linear")
 TRACKERS = ("dtrc", "nn")
@@ -313,4 +314,31 @@ def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out
                "median_total_ms": float(np.median(totals)), "per_frame": per_frame}
     (out / "summary.json").write_text(json.dumps(summary, indent=1), encoding="utf-8")
     return summary
+
+
+def compile_kernels() -> float:
+    """Run the whole chain on two analytic frames so that numba compiles (or loads from its cache)
+    every kernel of the common path; returns the seconds it took. The first call after an install
+    compiles (~20-25 s on the 2-core reference machine), later ones load the cached machine code in
+    well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
+    from pipeline.design import load_design
+    from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
+
+    from pipeline.detection import detect_markers
+    from pipeline.dtrc import code_rings
+
+    t0 = time.perf_counter()
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    rec = Reconstructor(design, calib)
+    for depth in (0.0, 2.0):
+        frame = synth_stereo_frame(design, calib, gaussian_press_markers(design, depth))
+        rec.process(frame)            # strided half-frame views, as from a camera
+    # a single contiguous view (the detect command), with a marker missing and a spurious blob far out
+    blobs = detect_markers(np.ascontiguousarray(frame.left))
+    code_rings(blobs, design)
+    far = np.array([[2.0, 2.0]])
+    code_rings(Blobs(np.vstack([blobs.xy_px[1:], far]), np.r_[blobs.sigma_px[1:], blobs.sigma_px[:1]],
+                     np.r_[blobs.response[1:], blobs.response[:1]]), design)
+    return time.perf_counter() - t0
 
