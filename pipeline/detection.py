@@ -613,7 +613,8 @@ def _ring_median(img, ix, iy, dx, dy, k0, k1, out, hist):
 
 @numba.njit(cache=True, nogil=True)
 def _measure_kernel(img, cand, gid, n_iter, sat_thr, lims, ring_dx, ring_dy, ring_ptr, starts, win_dx, win_dy,
-                    win_ptr, core_dx, core_dy, core_ptr, xy, contrast, sectors, sat, core_sat):
+                    win_ptr, spans, span_ptr, reach, core_dx, core_dy, core_ptr, xy, contrast, sectors, sat,
+                    core_sat):
     """Compiled per-candidate loop of :func:`_refine_and_measure`.
 
     Candidate ``i`` (x, y in ``cand[i, :2]``) uses the geometry of group ``g = gid[i]``: the pixel
@@ -648,13 +649,24 @@ def _measure_kernel(img, cand, gid, n_iter, sat_thr, lims, ring_dx, ring_dy, rin
             tot = 0.0
             mx = 0.0
             my = 0.0
-            for k in range(w0, w1):
-                u, v = ix + win_dx[k], iy + win_dy[k]
-                if 0 <= u < w and 0 <= v < h:
-                    wt = max(np.float32(img[v, u]) * _U8_SCALE - bg, 0.0)   # branch-free: marker edges are unpredictable
-                    tot += wt
-                    mx += wt * win_dx[k]
-                    my += wt * win_dy[k]
+            rr = reach[g]
+            if rr <= ix < w - rr and rr <= iy < h - rr:
+                # window wholly inside: row spans, no bounds tests (same pixels, same order)
+                for sp in range(span_ptr[g], span_ptr[g + 1]):
+                    dy = spans[sp, 0]
+                    for dx in range(spans[sp, 1], spans[sp, 2] + 1):
+                        wt = max(np.float32(img[iy + dy, ix + dx]) * _U8_SCALE - bg, 0.0)   # branch-free
+                        tot += wt
+                        mx += wt * dx
+                        my += wt * dy
+            else:
+                for k in range(w0, w1):
+                    u, v = ix + win_dx[k], iy + win_dy[k]
+                    if 0 <= u < w and 0 <= v < h:
+                        wt = max(np.float32(img[v, u]) * _U8_SCALE - bg, 0.0)   # branch-free: marker edges are unpredictable
+                        tot += wt
+                        mx += wt * win_dx[k]
+                        my += wt * win_dy[k]
             nx, ny = x, y
             if tot > 0.0:
                 nx, ny = ix + mx / tot, iy + my / tot
@@ -727,8 +739,8 @@ def _refine_and_measure(grey: np.ndarray, cand: np.ndarray, params: DetectionPar
 def _offset_tables(scales: tuple[float, ...], params: DetectionParams):
     """The :func:`_group_offsets` of every measuring scale, concatenated for :func:`_measure_kernel`:
     run-away limits (G,), ring dx, dy, pointers (G + 1,), sector starts (G, 9) as absolute indices,
-    window dx, dy, pointers, core dx, dy, pointers. Cached per set of scales (a stream of frames
-    sees the same few)."""
+    window dx, dy, pointers, window row spans (S, 3) with pointers and each window's reach (G,),
+    core dx, dy, pointers. Cached per set of scales (a stream of frames sees the same few)."""
     key = (scales, params.centroid_radius_factor)
     hit = _TABLES.get(key)
     if hit is not None:
@@ -739,8 +751,15 @@ def _offset_tables(scales: tuple[float, ...], params: DetectionParams):
     cat = lambda k: np.concatenate([gr[k] for gr in groups]).astype(np.intp)                          # noqa: E731
     ring_ptr = ptr(0)
     starts = np.stack([gr[2] + ring_ptr[j] for j, gr in enumerate(groups)]).astype(np.intp)
+    # the window as row spans (dy, first dx, last dx), in the offsets' own row-major order
+    spans = []
+    for gr in groups:
+        dys = np.unique(gr[4])
+        spans.append(np.array([[dy, gr[3][gr[4] == dy].min(), gr[3][gr[4] == dy].max()] for dy in dys], np.intp))
+    span_ptr = np.concatenate([[0], np.cumsum([len(sp) for sp in spans])]).astype(np.intp)
+    reach = np.array([int(max(np.abs(gr[3]).max(), np.abs(gr[4]).max())) for gr in groups], np.intp)
     hit = (np.array([0.5 * r + 1.0 for r in radii]), cat(0), cat(1), ring_ptr, starts,
-           cat(3), cat(4), ptr(3), cat(5), cat(6), ptr(5))
+           cat(3), cat(4), ptr(3), np.concatenate(spans), span_ptr, reach, cat(5), cat(6), ptr(5))
     if len(_TABLES) > 64:
         _TABLES.clear()
     _TABLES[key] = hit
