@@ -152,8 +152,6 @@ def to_grey(image: np.ndarray, *, name: str = "image") -> np.ndarray:
     raise DataError(f"{name}: expected a grey (H, W) or BGR (H, W, 3) image, got shape {image.shape}")
 
 
-_KXX = (np.array([1.0, -2.0, 1.0], np.float32), np.array([1.0], np.float32))
-_KD = np.array([-0.5, 0.0, 0.5], np.float32)
 _SECTORS = 8  # angular sectors of the background ring for the isolation test
 _RING_IN = 1.25
 
@@ -390,7 +388,6 @@ def _candidates(grey: np.ndarray, params: DetectionParams):
     once for all scales (flat indices) rather than once per scale.
     """
     sig = np.asarray(sorted(params.sigmas_px), dtype=np.float64)
-    n_s = len(sig)
     log_s = np.log2(sig)
     level_of = np.floor(2 * np.log2(np.maximum(sig / _LEVEL_SIGMA, 1.0))).astype(int)
     level_of[(level_of == 1) & (sig / 2 >= _MIN_HALF_SIGMA)] = 2
