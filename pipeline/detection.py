@@ -2,17 +2,22 @@
 
 Markers are bright dots on a dark background. The detector works on a small Gaussian scale space
 built on an image pyramid (two scales per octave, octave ``L`` computed on the image reduced
-``2**L`` times, so the cost stays at a few ms per 640x480 view whatever the largest scale):
+``2**L`` times, so the cost stays around a millisecond per 640x480 view whatever the largest scale):
 
 1. scale-normalised determinant of Hessian ``DoH = sigma**4 (Lxx Lyy - Lxy**2)``, kept only where
    the Laplacian ``Lxx + Lyy`` is negative (bright blob; DoH alone is positive for both polarities);
-2. non-maximum suppression in space (3x3 ``cv2.dilate``) and across scales (the strongest scale
+2. non-maximum suppression in space (3x3 neighbourhood) and across scales (the strongest scale
    within ``min_separation_px`` wins);
 3. sub-pixel centres: background-subtracted intensity centroid on the full-resolution image in a
    disc of radius ``centroid_radius_factor * sqrt(2) * sigma`` about the peak, iterated;
 4. rejection of what is not a marker (LED-ring glare, the bright rim outside the skin): a blob must
    be brighter than its surrounding ring on ALL sides (``isolation``), must not be much larger than
    the median blob, must not be elongated, and must not sit on a saturated plateau.
+
+The Gaussian filtering is OpenCV's; the per-pixel and per-marker loops around it (pyramid
+reductions, DoH and peaks, sparse peak work, suppression, centroids and photometry) are numba-compiled
+with the arithmetic of the numpy/OpenCV code they replaced (tests compare them with OpenCV where it
+has the same operation).
 
 References
 ----------
