@@ -3,6 +3,11 @@
 Frames are analytic (:mod:`pipeline.synthetic`): a Gaussian press whose depth sweeps 0-3 mm over
 the run, so every frame differs. The paper reports 283 ms per frame (MATLAB/Python, Ryzen 7 5800X);
 the goal here is <= 5 ms median.
+
+Stages are the runner's: ``detect`` (both views), ``match`` (DTRC), ``stereo_check``, ``triangulate``,
+``refraction``, ``surface``, and ``total``. With the exact model the stereo check's ray tracing IS the
+refraction correction (the runner reuses its cloud), so its time is under ``stereo_check`` and
+``refraction`` is ~0.
 """
 
 from __future__ import annotations
