@@ -29,8 +29,12 @@ motions keep identity). :class:`NearestNeighbourTracker` is the paper's KNN base
 
 Speed: with ~100-300 blobs per view, per-call overheads dominate, so the per-frame path (triangulation,
 nearest neighbours, carving and peeling, angular coding, pairing) runs as a few numba-compiled kernels
-(~0.3 ms per stereo frame for 127 markers); the numpy classes and functions they replace remain the
-definitions (:class:`_Mesh`) and the rare defect paths (prediction, verification) stay in numpy.
+(~0.3 ms per stereo frame for 127 markers); the numpy classes they replace remain the definitions
+(:class:`_Mesh`). The defect paths of strongly pressed frames (irregular rings coded by prediction,
+verification and growth) are compiled too: the local affine fits take their neighbours from a port of
+scipy's cKDTree that reproduces its choice among equidistant lattice points, so the codes are those of
+the numpy definitions (cKDTree + batched least squares, kept in the tests); a 5 mm twin press on
+hexagon127 codes in ~0.5 ms instead of ~1.9 ms.
 """
 
 from __future__ import annotations
@@ -42,7 +46,9 @@ import numba
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
+from pipeline.delaunay import delaunay_certified
 from pipeline.design import SensorDesign
+from pipeline.kdtree import kd_build, kd_query
 from pipeline.types import Blobs, MarkerMatches
 
 __all__ = ["RingCoding", "code_rings", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
@@ -178,317 +184,6 @@ def _median(a: np.ndarray) -> float:
     return (s[(n - 1) // 2] + s[n // 2]) / 2
 
 
-# ----- Delaunay triangulation ---------------------------------------------------------------
-# Qhull costs ~0.3 ms for 127 points, most of it set-up, so the triangulation is computed by a compiled
-# sweep-hull (Delaunator's algorithm: points added in order of distance from a seed circumcentre, the
-# convex hull kept as a linked list, Lawson flips) and then CERTIFIED: every point used, every triangle
-# counter-clockwise, every interior edge strictly locally Delaunay and the hull strictly convex, each
-# with a relative margin far above rounding. Such a triangulation is the unique Delaunay triangulation,
-# i.e. the one Qhull returns; anything short of the certificate (duplicates, collinear or co-circular
-# points, e.g. exact lattices) falls back to Qhull, so results never depend on which path ran.
-
-#: Relative margins of the certificate (rounding error of the predicates is ~1e-15 relative).
-_ORIENT_MARGIN = 1e-10
-_INCIRCLE_MARGIN = 1e-9
-
-
-@numba.njit(cache=True)
-def _orient(ax, ay, bx, by, cx, cy):
-    """Twice the signed area of (a, b, c): > 0 counter-clockwise (x right, y up)."""
-    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-
-
-@numba.njit(cache=True)
-def _incircle(ax, ay, bx, by, cx, cy, px, py):
-    """(det, permanent): det > 0 when p is inside the circumcircle of the counter-clockwise triangle
-    (a, b, c); the permanent (the same terms in absolute value) bounds det's rounding error."""
-    dx, dy = ax - px, ay - py
-    ex, ey = bx - px, by - py
-    fx, fy = cx - px, cy - py
-    ap = dx * dx + dy * dy
-    bp = ex * ex + ey * ey
-    cp = fx * fx + fy * fy
-    det = dx * (ey * cp - bp * fy) - dy * (ex * cp - bp * fx) + ap * (ex * fy - ey * fx)
-    perm = (abs(dx) * (abs(ey) * cp + bp * abs(fy)) + abs(dy) * (abs(ex) * cp + bp * abs(fx))
-            + ap * (abs(ex) * abs(fy) + abs(ey) * abs(fx)))
-    return det, perm
-
-
-@numba.njit(cache=True)
-def _hash_key(x, y, cx, cy, size):
-    """Hull hash bucket of a point: its pseudo-angle (monotone in the angle, no trigonometry) about c."""
-    dx, dy = x - cx, y - cy
-    s = abs(dx) + abs(dy)
-    p = dx / s if s > 0 else 0.0
-    a = (3.0 - p if dy > 0 else 1.0 + p) / 4.0
-    return int(math.floor(a * size)) % size
-
-
-@numba.njit(cache=True)
-def _link(half, a, b):
-    half[a] = b
-    if b != -1:
-        half[b] = a
-
-
-@numba.njit(cache=True)
-def _legalize(a, tri, half, pts, hull_tri, hull_prev, hull_start, stack):
-    """Flip edges from halfedge ``a`` until they are locally Delaunay (Lawson). Returns the halfedge
-    that ends on the hull from the new point (Delaunator's bookkeeping)."""
-    sp = 0
-    ar = 0
-    while True:
-        b = half[a]
-        a0 = a - a % 3
-        ar = a0 + (a + 2) % 3
-        if b == -1:
-            if sp == 0:
-                break
-            sp -= 1
-            a = stack[sp]
-            continue
-        b0 = b - b % 3
-        al = a0 + (a + 1) % 3
-        bl = b0 + (b + 2) % 3
-        p0, pr, pl, p1 = tri[ar], tri[a], tri[al], tri[bl]
-        det, _ = _incircle(pts[p0, 0], pts[p0, 1], pts[pr, 0], pts[pr, 1], pts[pl, 0], pts[pl, 1],
-                           pts[p1, 0], pts[p1, 1])
-        if det > 0:  # p1 inside the circumcircle of (p0, pr, pl): flip pr-pl to p0-p1
-            tri[a] = p1
-            tri[b] = p0
-            hbl = half[bl]
-            if hbl == -1:  # the flipped edge's far side was a hull edge: move its reference
-                e = hull_start
-                while True:
-                    if hull_tri[e] == bl:
-                        hull_tri[e] = a
-                        break
-                    e = hull_prev[e]
-                    if e == hull_start:
-                        break
-            _link(half, a, hbl)
-            _link(half, b, half[ar])
-            _link(half, ar, bl)
-            if sp < len(stack):
-                stack[sp] = b0 + (b + 1) % 3
-                sp += 1
-        else:
-            if sp == 0:
-                break
-            sp -= 1
-            a = stack[sp]
-    return ar
-
-
-@numba.njit(cache=True)
-def _certify(pts, tri, half, hull_start, hull_next, hull_n):
-    """True when the triangles (``tri``, 3 per triangle, ``half``: opposite halfedges) are certainly
-    THE Delaunay triangulation of all ``pts``: all points used, Euler count, strictly CCW triangles,
-    consistent adjacency, interior edges strictly locally Delaunay, strictly convex hull."""
-    n = len(pts)
-    nt = len(tri)
-    used = np.zeros(n, np.bool_)
-    for h in range(nt):
-        used[tri[h]] = True
-    if not used.all() or nt // 3 != 2 * n - 2 - hull_n:
-        return False
-    for t in range(0, nt, 3):
-        a, b, c = tri[t], tri[t + 1], tri[t + 2]
-        dx1, dy1 = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
-        dx2, dy2 = pts[c, 0] - pts[a, 0], pts[c, 1] - pts[a, 1]
-        if not dx1 * dy2 - dy1 * dx2 > _ORIENT_MARGIN * (abs(dx1 * dy2) + abs(dy1 * dx2)):
-            return False
-    n_hull_edges = 0
-    for h in range(nt):
-        g = half[h]
-        if g < 0:
-            n_hull_edges += 1
-            continue
-        hn = h - h % 3 + (h + 1) % 3
-        gn = g - g % 3 + (g + 1) % 3
-        if half[g] != h or tri[g] != tri[hn] or tri[gn] != tri[h]:
-            return False
-        if h < g:
-            p0 = tri[h - h % 3 + (h + 2) % 3]
-            p1 = tri[g - g % 3 + (g + 2) % 3]
-            det, perm = _incircle(pts[p0, 0], pts[p0, 1], pts[tri[h], 0], pts[tri[h], 1],
-                                  pts[tri[hn], 0], pts[tri[hn], 1], pts[p1, 0], pts[p1, 1])
-            if not det < -_INCIRCLE_MARGIN * perm:
-                return False
-    if n_hull_edges != hull_n:
-        return False
-    e = hull_start
-    for _ in range(hull_n):
-        q = hull_next[e]
-        r = hull_next[q]
-        dx1, dy1 = pts[q, 0] - pts[e, 0], pts[q, 1] - pts[e, 1]
-        dx2, dy2 = pts[r, 0] - pts[e, 0], pts[r, 1] - pts[e, 1]
-        if not dx1 * dy2 - dy1 * dx2 > _ORIENT_MARGIN * (abs(dx1 * dy2) + abs(dy1 * dx2)):
-            return False
-        e = q
-    return e == hull_start
-
-
-@numba.njit(cache=True)
-def _delaunay(pts):
-    """Sweep-hull Delaunay triangulation of (N, 2) points: (simplices (M, 3), neighbours (M, 3) in
-    scipy's convention (``neighbors[t, k]`` opposite vertex k, -1 on the hull), certified). Only a
-    certified result may be used (see the section comment)."""
-    n = len(pts)
-    empty = np.empty((0, 3), np.intp)
-    if n < 3:
-        return empty, empty.copy(), False
-    xs = pts[:, 0]
-    ys = pts[:, 1]
-    bx, by = (xs.min() + xs.max()) / 2, (ys.min() + ys.max()) / 2
-    # seed triangle: the point nearest the box centre, its nearest neighbour, and the point making
-    # the smallest circumcircle with them
-    i0 = 0
-    best = np.inf
-    for i in range(n):
-        d = (xs[i] - bx) ** 2 + (ys[i] - by) ** 2
-        if d < best:
-            i0, best = i, d
-    i1 = -1
-    best = np.inf
-    for i in range(n):
-        d = (xs[i] - xs[i0]) ** 2 + (ys[i] - ys[i0]) ** 2
-        if i != i0 and 0 < d < best:
-            i1, best = i, d
-    if i1 < 0:
-        return empty, empty.copy(), False
-    i2 = -1
-    best = np.inf
-    dx, dy = xs[i1] - xs[i0], ys[i1] - ys[i0]
-    for i in range(n):
-        if i == i0 or i == i1:
-            continue
-        ex, ey = xs[i] - xs[i0], ys[i] - ys[i0]
-        den = dx * ey - dy * ex
-        if den == 0:
-            continue
-        bl, cl = dx * dx + dy * dy, ex * ex + ey * ey
-        ux, uy = (ey * bl - dy * cl) * 0.5 / den, (dx * cl - ex * bl) * 0.5 / den
-        r = ux * ux + uy * uy
-        if r < best:
-            i2, best = i, r
-    if i2 < 0:
-        return empty, empty.copy(), False
-    if _orient(xs[i0], ys[i0], xs[i1], ys[i1], xs[i2], ys[i2]) < 0:
-        i1, i2 = i2, i1
-    dx, dy = xs[i1] - xs[i0], ys[i1] - ys[i0]
-    ex, ey = xs[i2] - xs[i0], ys[i2] - ys[i0]
-    bl, cl = dx * dx + dy * dy, ex * ex + ey * ey
-    den = 0.5 / (dx * ey - dy * ex)
-    ccx, ccy = xs[i0] + (ey * bl - dy * cl) * den, ys[i0] + (dx * cl - ex * bl) * den
-    order = np.argsort((xs - ccx) ** 2 + (ys - ccy) ** 2)
-
-    max_tri = max(2 * n - 5, 1)
-    tri = np.empty(3 * max_tri, np.intp)  # halfedge h = 3 t + k runs tri[h] -> tri[3 t + (k + 1) % 3]
-    half = np.empty(3 * max_tri, np.intp)  # opposite halfedge, -1 on the hull
-    hull_prev = np.zeros(n, np.intp)
-    hull_next = np.zeros(n, np.intp)  # CCW hull as a linked list; hull_next[i] == i: removed
-    hull_tri = np.zeros(n, np.intp)  # halfedge of the hull edge (i, hull_next[i])
-    hsize = max(int(math.ceil(math.sqrt(n))), 1)
-    hull_hash = np.full(hsize, -1, np.intp)
-    stack = np.empty(3 * max_tri + 16, np.intp)
-
-    hull_start = i0
-    hull_n = 3
-    hull_next[i0], hull_next[i1], hull_next[i2] = i1, i2, i0
-    hull_prev[i0], hull_prev[i1], hull_prev[i2] = i2, i0, i1
-    hull_tri[i0], hull_tri[i1], hull_tri[i2] = 0, 1, 2
-    hull_hash[_hash_key(xs[i0], ys[i0], ccx, ccy, hsize)] = i0
-    hull_hash[_hash_key(xs[i1], ys[i1], ccx, ccy, hsize)] = i1
-    hull_hash[_hash_key(xs[i2], ys[i2], ccx, ccy, hsize)] = i2
-    tri[0], tri[1], tri[2] = i0, i1, i2
-    half[0] = half[1] = half[2] = -1
-    nt = 3
-
-    for k in range(n):
-        i = order[k]
-        if i == i0 or i == i1 or i == i2:
-            continue
-        x, y = xs[i], ys[i]
-        # a hull edge near the point's angle, then the first edge it sees (strictly right of it)
-        start = 0
-        key = _hash_key(x, y, ccx, ccy, hsize)
-        for j in range(hsize):
-            start = hull_hash[(key + j) % hsize]
-            if start != -1 and start != hull_next[start]:
-                break
-        start = hull_prev[start]
-        e = start
-        while True:
-            q = hull_next[e]
-            if _orient(xs[e], ys[e], xs[q], ys[q], x, y) < 0:
-                break
-            e = q
-            if e == start:
-                e = -1
-                break
-        if e == -1:
-            continue  # a duplicate or numerically on the hull: left unused (fails the certificate)
-        q = hull_next[e]
-        t = nt
-        tri[t], tri[t + 1], tri[t + 2] = e, i, q
-        half[t] = -1
-        half[t + 1] = -1
-        _link(half, t + 2, hull_tri[e])
-        nt += 3
-        hull_tri[i] = _legalize(t + 2, tri, half, pts, hull_tri, hull_prev, hull_start, stack)
-        hull_tri[e] = t
-        hull_n += 1
-        # walk forward along the hull adding triangles while the point sees the edges
-        nx = hull_next[e]
-        while True:
-            q = hull_next[nx]
-            if not _orient(xs[nx], ys[nx], xs[q], ys[q], x, y) < 0:
-                break
-            t = nt
-            tri[t], tri[t + 1], tri[t + 2] = nx, i, q
-            _link(half, t, hull_tri[i])
-            half[t + 1] = -1
-            _link(half, t + 2, hull_tri[nx])
-            nt += 3
-            hull_tri[i] = _legalize(t + 2, tri, half, pts, hull_tri, hull_prev, hull_start, stack)
-            hull_next[nx] = nx
-            hull_n -= 1
-            nx = q
-        # and backward, when the first visible edge was where the search started
-        if e == start:
-            while True:
-                q = hull_prev[e]
-                if not _orient(xs[q], ys[q], xs[e], ys[e], x, y) < 0:
-                    break
-                t = nt
-                tri[t], tri[t + 1], tri[t + 2] = q, i, e
-                half[t] = -1
-                _link(half, t + 1, hull_tri[e])
-                _link(half, t + 2, hull_tri[q])
-                nt += 3
-                _legalize(t + 2, tri, half, pts, hull_tri, hull_prev, hull_start, stack)
-                hull_tri[q] = t
-                hull_next[e] = e
-                hull_n -= 1
-                e = q
-        hull_start = e
-        hull_prev[i] = e
-        hull_next[e] = i
-        hull_prev[nx] = i
-        hull_next[i] = nx
-        hull_hash[_hash_key(x, y, ccx, ccy, hsize)] = i
-        hull_hash[_hash_key(xs[e], ys[e], ccx, ccy, hsize)] = e
-
-    m = nt // 3
-    simp = tri[:nt].reshape(m, 3).copy()
-    nb = np.empty((m, 3), np.intp)
-    for h in range(nt):  # halfedge 3 t + k is opposite vertex (k + 2) % 3
-        g = half[h]
-        nb[h // 3, (h % 3 + 2) % 3] = g // 3 if g >= 0 else -1
-    return simp, nb, _certify(pts, tri[:nt], half[:nt], hull_start, hull_next, hull_n)
-
-
 # ----- meshing and peeling ------------------------------------------------------------------
 
 def _triangulate(pts: np.ndarray, *, with_exact: bool = False):
@@ -496,13 +191,13 @@ def _triangulate(pts: np.ndarray, *, with_exact: bool = False):
     vertex k, -1 on the hull); joggled when exact lattices leave co-circular points unused.
     ``with_exact`` also returns whether the triangulation is the exact (unjoggled) one using every point.
 
-    The certified compiled triangulation (:func:`_delaunay`) is used when it exists; otherwise Qhull.
+    The certified compiled triangulation (:func:`pipeline.delaunay.delaunay_certified`) is used when it exists; otherwise Qhull.
     Triangle order and vertex rotation may differ between the two; nothing downstream depends on them.
     """
     empty = np.empty((0, 3), np.intp)
     out = (empty, empty, False)
     if len(pts) >= 3:
-        simp, nb, certified = _delaunay(np.ascontiguousarray(pts, dtype=np.float64))
+        simp, nb, certified = delaunay_certified(np.ascontiguousarray(pts, dtype=np.float64))
         if certified:
             out = (simp, nb, True)
         else:
@@ -947,58 +642,127 @@ def _unmatched(ids, n_markers):
     return np.flatnonzero(~present).astype(np.int64)
 
 
-_SHIFTS: dict[int, np.ndarray] = {}
+# ----- prediction: kd-tree neighbours and local affine fits ---------------------------------
+# The defect paths (irregular rings, verification, growth) predict design slots from local affine fits
+# to the k nearest coded DESIGN points. Design lattices tie exactly (a quarter of the hexagon slots have
+# two design points at the same float distance around the 8th neighbour), and which tied point enters
+# the fit changes the prediction far beyond rounding. The numpy definition took the neighbours from
+# scipy's cKDTree, so the kernels below reproduce cKDTree step for step (leafsize 16, median splits by
+# libstdc++'s nth_element and partition, compact boxes; best-first query with its two binary heaps,
+# a point replacing the farthest neighbour only when strictly nearer): same neighbours, ties included.
+# The 3x3 least squares are solved directly (Gaussian elimination, partial pivoting); they differ from
+# LAPACK by rounding only (~1e-15 relative), far below the gates' margins.
 
-
-def _affine_predict(query_xy: np.ndarray, ref_xy: np.ndarray, ref_px: np.ndarray, *, k: int = 8,
-                    exclude_self: bool = False) -> tuple[np.ndarray, np.ndarray]:
+@numba.njit(cache=True)
+def _affine_fit(query_xy, ref_xy, ref_px, k, exclude_self):
     """Predict image positions of design points from local affine fits to coded neighbours.
 
-    Batched least squares over the ``k`` nearest coded design neighbours of each query point.
-    Returns (predicted px (Q, 2), local pixels per design mm (Q,)).
+    Least squares (``+ 1e-9 I`` on the normal matrix) of px ~ [x, y, 1] A over the ``k`` nearest
+    reference design points of each query (cKDTree's, without the query itself when
+    ``exclude_self``). Returns (predicted px (Q, 2), local pixels per design mm (Q,) = sqrt |det A_2x2|).
     """
-    kk = min(k + int(exclude_self), len(ref_xy))
-    _, nb = cKDTree(ref_xy).query(query_xy, k=kk)
-    nb = nb.reshape(len(query_xy), -1)
-    if exclude_self:
-        nb = nb[:, 1:]
-    X = np.concatenate([ref_xy[nb], np.ones(nb.shape + (1,))], axis=2)  # (Q, k, 3)
-    Y = ref_px[nb]  # (Q, k, 2)
-    XtX = np.einsum("qki,qkj->qij", X, X) + 1e-9 * np.eye(3)
-    XtY = np.einsum("qki,qkj->qij", X, Y)
-    A = np.linalg.solve(XtX, XtY)  # (Q, 3, 2)
-    pred = np.einsum("qi,qij->qj", np.column_stack([query_xy, np.ones(len(query_xy))]), A)
-    scale = np.sqrt(np.abs(np.linalg.det(A[:, :2, :2])))
+    kk = min(k + (1 if exclude_self else 0), len(ref_xy))
+    tree = kd_build(ref_xy)
+    nb = np.empty(kk, np.int64)
+    d2 = np.empty(kk)
+    pred = np.empty((len(query_xy), 2))
+    scale = np.empty(len(query_xy))
+    M = np.empty((3, 3))
+    B = np.empty((3, 2))
+    for q in range(len(query_xy)):
+        kd_query(ref_xy, tree, query_xy[q, 0], query_xy[q, 1], kk, nb, d2)
+        M[:] = 0.0
+        B[:] = 0.0
+        for t in range(1 if exclude_self else 0, kk):
+            r = nb[t]
+            X = (ref_xy[r, 0], ref_xy[r, 1], 1.0)
+            for i in range(3):
+                for j in range(3):
+                    M[i, j] += X[i] * X[j]
+                B[i, 0] += X[i] * ref_px[r, 0]
+                B[i, 1] += X[i] * ref_px[r, 1]
+        for i in range(3):
+            M[i, i] += 1e-9  # as the numpy definition (keeps collinear neighbours solvable)
+        # Gaussian elimination with partial pivoting (M is positive definite)
+        for c in range(3):
+            p = c
+            for r in range(c + 1, 3):
+                if abs(M[r, c]) > abs(M[p, c]):
+                    p = r
+            if p != c:
+                for j in range(3):
+                    M[c, j], M[p, j] = M[p, j], M[c, j]
+                for j in range(2):
+                    B[c, j], B[p, j] = B[p, j], B[c, j]
+            for r in range(c + 1, 3):
+                f = M[r, c] / M[c, c]
+                for j in range(c, 3):
+                    M[r, j] -= f * M[c, j]
+                for j in range(2):
+                    B[r, j] -= f * B[c, j]
+        for c in range(2, -1, -1):
+            for j in range(2):
+                s = B[c, j]
+                for i in range(c + 1, 3):
+                    s -= M[c, i] * B[i, j]
+                B[c, j] = s / M[c, c]
+        qx, qy = query_xy[q, 0], query_xy[q, 1]
+        pred[q, 0] = qx * B[0, 0] + qy * B[1, 0] + B[2, 0]
+        pred[q, 1] = qx * B[0, 1] + qy * B[1, 1] + B[2, 1]
+        scale[q] = math.sqrt(abs(B[0, 0] * B[1, 1] - B[0, 1] * B[1, 0]))
     return pred, scale
 
 
-def _verify_and_grow(pts: np.ndarray, ids: np.ndarray, active: np.ndarray, xy_d: np.ndarray,
-                     pitch_mm: float, max_rounds: int) -> int:
+@numba.njit(cache=True)
+def _verify_and_grow(pts, ids, active, xy_d, pitch_mm, max_rounds):
     """Uncode ids that disagree with their coded neighbours, then code free slots by prediction.
 
-    Modifies ``ids`` in place; returns the number of ids removed by verification.
+    Verification: each coded blob must lie within ``PREDICT_GATE`` local pitches of its slot predicted
+    from its 8 nearest coded design neighbours. Growth (up to ``max_rounds`` rounds): every free slot
+    is predicted from the coded ones and takes the nearest candidate blob (active, uncoded) when it is
+    within the gate and the slot is that blob's nearest prediction (mutual nearest). Modifies ``ids``
+    in place; returns the number of ids removed by verification.
     """
     gate = PREDICT_GATE * pitch_mm
     removed = 0
-    coded = np.nonzero(ids >= 0)[0]
+    coded = np.flatnonzero(ids >= 0)
     if len(coded) >= 4:
-        pred, sc = _affine_predict(xy_d[ids[coded]], xy_d[ids[coded]], pts[coded], exclude_self=True)
-        bad = np.linalg.norm(pred - pts[coded], axis=1) > gate * sc
-        ids[coded[bad]] = -1
-        removed = int(bad.sum())
+        ref_xy = xy_d[ids[coded]]
+        pred, sc = _affine_fit(ref_xy, ref_xy, pts[coded], 8, True)
+        for i in range(len(coded)):
+            dx, dy = pred[i, 0] - pts[coded[i], 0], pred[i, 1] - pts[coded[i], 1]
+            if math.sqrt(dx * dx + dy * dy) > gate * sc[i]:
+                ids[coded[i]] = -1
+                removed += 1
+    one = np.empty(1, np.int64)
+    one_d2 = np.empty(1)
     for _ in range(max_rounds):
-        coded = np.nonzero(ids >= 0)[0]
-        free_slots = np.setdiff1d(np.arange(len(xy_d)), ids[coded])
-        cand = np.nonzero(active & (ids < 0))[0]
-        if len(coded) < 4 or len(free_slots) == 0 or len(cand) == 0:
+        coded = np.flatnonzero(ids >= 0)
+        used = np.zeros(len(xy_d), np.bool_)
+        for i in coded:
+            used[ids[i]] = True
+        free = np.flatnonzero(~used)
+        cand = np.flatnonzero(active & (ids < 0))
+        if len(coded) < 4 or len(free) == 0 or len(cand) == 0:
             break
-        pred, sc = _affine_predict(xy_d[free_slots], xy_d[ids[coded]], pts[coded])
-        d, j = cKDTree(pts[cand]).query(pred)
-        back = cKDTree(pred).query(pts[cand[j]])[1]
-        ok = (d <= gate * sc) & (back == np.arange(len(free_slots)))
-        if not ok.any():
+        pred, sc = _affine_fit(xy_d[free], xy_d[ids[coded]], pts[coded], 8, False)
+        cand_px = pts[cand]
+        cand_tree = kd_build(cand_px)
+        pred_tree = kd_build(pred)
+        take = np.full(len(free), -1, np.int64)
+        for q in range(len(free)):
+            kd_query(cand_px, cand_tree, pred[q, 0], pred[q, 1], 1, one, one_d2)
+            j = one[0]
+            if not math.sqrt(one_d2[0]) <= gate * sc[q]:
+                continue
+            kd_query(pred, pred_tree, cand_px[j, 0], cand_px[j, 1], 1, one, one_d2)
+            if one[0] == q:
+                take[q] = cand[j]
+        if not np.any(take >= 0):
             break
-        ids[cand[j[ok]]] = free_slots[ok]
+        for q in range(len(free)):
+            if take[q] >= 0:
+                ids[take[q]] = free[q]
     return removed
 
 
@@ -1009,30 +773,39 @@ SHIFT_FIT = 0.45
 SHIFT_MARGIN = 2.0
 
 
-def _shift_by_prediction(members: np.ndarray, d_ids: np.ndarray, pts: np.ndarray, ids: np.ndarray,
-                         xy_d: np.ndarray, pitch_mm: float) -> int | None:
+@numba.njit(cache=True)
+def _shift_by_prediction(members, d_ids, pts, ids, xy_d, pitch_mm):
     """Cyclic shift coding a complete ring (``members`` sorted CCW) whose gaps are irregular.
 
     The ring's cyclic order is topological and survives deformation; only its start is unknown. Each
     design slot of the ring is predicted from a local affine fit to the coded markers (the rings
-    inside, already coded), and the shift whose found points lie nearest the predictions wins when
-    it is unambiguous (:data:`SHIFT_FIT`, :data:`SHIFT_MARGIN`). Returns None otherwise.
+    inside, already coded), and the shift whose found points lie nearest the predictions (mean
+    distance in local pitches) wins when it is unambiguous (:data:`SHIFT_FIT`, :data:`SHIFT_MARGIN`).
+    Returns the shift (found point ``(i + shift) % n`` is slot ``i``), -1 when there is none.
     """
-    coded = np.nonzero(ids >= 0)[0]
+    coded = np.flatnonzero(ids >= 0)
     if len(coded) < 4:
-        return None
-    pred, sc = _affine_predict(xy_d[d_ids], xy_d[ids[coded]], pts[coded])
+        return -1
+    pred, sc = _affine_fit(xy_d[d_ids], xy_d[ids[coded]], pts[coded], 8, False)
     n = len(d_ids)
-    shifts = _SHIFTS.get(n)
-    if shifts is None:
-        shifts = _SHIFTS[n] = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
-    p = pts[members]
-    dist = np.linalg.norm(p[shifts] - pred[None, :, :], axis=2) / (pitch_mm * np.maximum(sc, 1e-9))[None, :]
-    cost = dist.mean(axis=1)
-    order = np.argsort(cost)
-    best = int(order[0])
-    if cost[best] > SHIFT_FIT or (n > 1 and cost[order[1]] < SHIFT_MARGIN * cost[best]):
-        return None
+    cost = np.empty(n)
+    for s in range(n):
+        acc = 0.0
+        for i in range(n):
+            m = members[(i + s) % n]
+            dx, dy = pts[m, 0] - pred[i, 0], pts[m, 1] - pred[i, 1]
+            acc += math.sqrt(dx * dx + dy * dy) / (pitch_mm * max(sc[i], 1e-9))
+        cost[s] = acc / n
+    best = 0
+    for s in range(1, n):
+        if cost[s] < cost[best]:
+            best = s
+    runner_up = np.inf
+    for s in range(n):
+        if s != best and cost[s] < runner_up:
+            runner_up = cost[s]
+    if cost[best] > SHIFT_FIT or (n > 1 and runner_up < SHIFT_MARGIN * cost[best]):
+        return -1
     return best
 
 
@@ -1097,12 +870,14 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
             members, phi = _ring_by_angle(pts, members)
             how = "prediction from the rings inside"
             shift = _shift_by_prediction(members, d_ids, pts, ids, xy_d, design.pattern.separation_mm)
+            shift = None if shift < 0 else int(shift)
             if shift is None and int((ids >= 0).sum()) < 4:
                 s_ang, _, spread = _shift_code(phi, d_ang, theta)
                 shift, how = (s_ang, "its angles") if spread < math.pi / len(d_ids) else (None, "")
             if shift is not None:
                 ids[np.concatenate((members[shift:], members[:shift]))] = d_ids
-                theta += float(np.angle(np.mean(np.exp(1j * (np.roll(phi, -shift) - d_ang - theta)))))
+                theta += float(np.angle(np.mean(np.exp(1j * (np.concatenate((phi[shift:], phi[:shift]))
+                                                              - d_ang - theta)))))
                 failed = True
                 msgs.append(f"ring {r} (layer {layer}): irregular, coded by {how}")
                 done = True

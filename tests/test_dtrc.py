@@ -270,7 +270,8 @@ def test_compiled_kernels_match_their_numpy_definitions():
     equals its vectorised definition."""
     from scipy.spatial import Delaunay
 
-    from pipeline.dtrc import _delaunay, _peel, _shift_code, _triangulate
+    from pipeline.delaunay import delaunay_certified
+    from pipeline.dtrc import _peel, _shift_code, _triangulate
 
     def canon(simp, nb):
         key = [tuple(sorted(t)) for t in simp.tolist()]
@@ -286,7 +287,7 @@ def test_compiled_kernels_match_their_numpy_definitions():
         uv = np.delete(uv, rng.choice(len(uv), int(rng.integers(0, 6)), replace=False), axis=0)
         if trial % 2:
             uv = np.vstack([uv, rng.uniform(uv.min(0) - 30, uv.max(0) + 30, (int(rng.integers(1, 4)), 2))])
-        simp, nb, certified = _delaunay(uv)
+        simp, nb, certified = delaunay_certified(uv)
         assert certified
         q = Delaunay(uv)
         assert canon(simp, nb) == canon(q.simplices, q.neighbors)
@@ -300,7 +301,7 @@ def test_compiled_kernels_match_their_numpy_definitions():
             np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(edges, ref_edges)
     exact = load_design("hexagon127").rest_markers_mm()[:, :2] * 10.0
-    assert not _delaunay(exact)[2]  # co-circular lattice points: Qhull decides
+    assert not delaunay_certified(exact)[2]  # co-circular lattice points: Qhull decides
 
     wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi  # noqa: E731
     for _ in range(200):
@@ -318,3 +319,117 @@ def test_compiled_kernels_match_their_numpy_definitions():
         got = _shift_code(phi, psi, theta)
         assert got[0] == s or np.isclose(cost[got[0]], cost[s], rtol=1e-12)
         np.testing.assert_allclose(got[1:], (theta + m[got[0]], np.max(np.abs(dev[got[0]]))), atol=1e-12)
+
+
+def _affine_reference(query_xy, ref_xy, ref_px, k=8, exclude_self=False):
+    """The numpy definition of the affine prediction: cKDTree neighbours, batched least squares."""
+    from scipy.spatial import cKDTree
+
+    kk = min(k + int(exclude_self), len(ref_xy))
+    nb = cKDTree(ref_xy).query(query_xy, k=kk)[1].reshape(len(query_xy), -1)[:, int(exclude_self):]
+    X = np.concatenate([ref_xy[nb], np.ones(nb.shape + (1,))], axis=2)
+    XtX = np.einsum("qki,qkj->qij", X, X) + 1e-9 * np.eye(3)
+    A = np.linalg.solve(XtX, np.einsum("qki,qkj->qij", X, ref_px[nb]))
+    pred = np.einsum("qi,qij->qj", np.column_stack([query_xy, np.ones(len(query_xy))]), A)
+    return pred, np.sqrt(np.abs(np.linalg.det(A[:, :2, :2])))
+
+
+def _verify_and_grow_reference(pts, ids, active, xy_d, pitch_mm, max_rounds):
+    from scipy.spatial import cKDTree
+
+    from pipeline.dtrc import PREDICT_GATE
+
+    gate, removed = PREDICT_GATE * pitch_mm, 0
+    coded = np.nonzero(ids >= 0)[0]
+    if len(coded) >= 4:
+        pred, sc = _affine_reference(xy_d[ids[coded]], xy_d[ids[coded]], pts[coded], exclude_self=True)
+        bad = np.linalg.norm(pred - pts[coded], axis=1) > gate * sc
+        ids[coded[bad]] = -1
+        removed = int(bad.sum())
+    for _ in range(max_rounds):
+        coded = np.nonzero(ids >= 0)[0]
+        free = np.setdiff1d(np.arange(len(xy_d)), ids[coded])
+        cand = np.nonzero(active & (ids < 0))[0]
+        if len(coded) < 4 or len(free) == 0 or len(cand) == 0:
+            break
+        pred, sc = _affine_reference(xy_d[free], xy_d[ids[coded]], pts[coded])
+        d, j = cKDTree(pts[cand]).query(pred)
+        ok = (d <= gate * sc) & (cKDTree(pred).query(pts[cand[j]])[1] == np.arange(len(free)))
+        if not ok.any():
+            break
+        ids[cand[j[ok]]] = free[ok]
+    return removed
+
+
+def test_compiled_prediction_kernels_match_their_numpy_definitions():
+    """The compiled defect path against its numpy definition on random inputs: the cKDTree port returns
+    cKDTree's neighbours in cKDTree's order, ties included (lattices, duplicates); the affine fits agree
+    to rounding; verification/growth and the shift coder give the same codes."""
+    from scipy.spatial import cKDTree
+
+    from pipeline.kdtree import kd_build, kd_query
+    from pipeline.dtrc import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
+                               _verify_and_grow)
+
+    rng = np.random.default_rng(7)
+    names = ["hexagon127", "square121", "circular217_dome", "hexagon61_sep354"]
+    for trial in range(80):
+        xy = load_design(names[trial % 4]).rest_markers_mm()[:, :2]
+        kind = trial % 3
+        if kind == 0:  # design points in random order: exact distance ties
+            ref = xy[rng.permutation(len(xy))[:len(xy) - int(rng.integers(0, 30))]]
+        elif kind == 1:  # integer grid with duplicates
+            ref = np.round(rng.uniform(0, 10, (int(rng.integers(1, 200)), 2)))
+        else:
+            ref = rng.normal(0, 50, (int(rng.integers(1, 250)), 2))
+        ref = np.ascontiguousarray(ref)
+        q = np.vstack([xy[rng.choice(len(xy), 10)], rng.uniform(ref.min(0) - 3, ref.max(0) + 3, (10, 2)),
+                       ref[rng.choice(len(ref), 5)]])
+        tree = kd_build(ref)
+        for k in {1, 2, min(8, len(ref)), min(9, len(ref))}:
+            d, nb = cKDTree(ref).query(q, k=k)
+            got_i, got_d2 = np.empty(k, np.int64), np.empty(k)
+            for i in range(len(q)):
+                kd_query(ref, tree, q[i, 0], q[i, 1], k, got_i, got_d2)
+                np.testing.assert_array_equal(got_i, nb[i].reshape(-1))
+                np.testing.assert_array_equal(np.sqrt(got_d2), d[i].reshape(-1))
+
+    for trial in range(40):
+        design = load_design(names[trial % 4])
+        xy_d = np.ascontiguousarray(design.rest_markers_mm()[:, :2])
+        px = _view(design, rng, rot_deg=rng.uniform(-20, 20), bulge=rng.uniform(0, 0.4), persp=0.05, noise=0.3)
+        coded = rng.permutation(len(xy_d))[:len(xy_d) - int(rng.integers(0, 20))]
+        pred, sc = _affine_fit(xy_d[coded], xy_d[coded], px[coded], 8, True)
+        ref_pred, ref_sc = _affine_reference(xy_d[coded], xy_d[coded], px[coded], exclude_self=True)
+        np.testing.assert_allclose(pred, ref_pred, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(sc, ref_sc, rtol=1e-9)
+        # blobs: the markers (shuffled, some missing), spurious blobs, wrong codes, some uncoded
+        keep = rng.permutation(len(px))[:len(px) - int(rng.integers(0, 8))]
+        pts = np.vstack([px[keep], rng.uniform(px.min(0), px.max(0), (int(rng.integers(0, 4)), 2))])
+        ids = np.concatenate([keep, np.full(len(pts) - len(keep), -1)]).astype(np.int64)
+        ids[rng.random(len(ids)) < 0.3] = -1
+        wrong = rng.choice(len(keep), 3, replace=False)
+        ids[wrong] = ids[np.roll(wrong, 1)]
+        active = rng.random(len(pts)) < 0.97
+        a, b = ids.copy(), ids.copy()
+        assert _verify_and_grow(pts, a, active, xy_d, design.pattern.separation_mm, 5) == \
+            _verify_and_grow_reference(pts, b, active, xy_d, design.pattern.separation_mm, 5)
+        np.testing.assert_array_equal(a, b)
+        # shift coder: the outermost ring rotated by a random shift, predicted from the rest
+        layers = design.marker_layers()
+        d_ids = np.nonzero(layers == design.pattern.layers - 1)[0]
+        n = len(d_ids)
+        members = np.roll(np.arange(n), -int(rng.integers(n)))
+        ring_px = px[d_ids] + rng.normal(0, rng.choice([0.1, 3.0, 10.0]), (n, 2))
+        pts = np.vstack([ring_px, px])
+        ids = np.concatenate([np.full(n, -1), np.where(layers < design.pattern.layers - 1, np.arange(len(px)), -1)])
+        ids[n + rng.choice(len(px), 5, replace=False)] = -1
+        got = _shift_by_prediction(members, d_ids, pts, ids, xy_d, design.pattern.separation_mm)
+        c = np.nonzero(ids >= 0)[0]
+        pred, sc = _affine_reference(xy_d[d_ids], xy_d[ids[c]], pts[c])
+        shifts = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
+        cost = (np.linalg.norm(pts[members][shifts] - pred[None], axis=2)
+                / (design.pattern.separation_mm * np.maximum(sc, 1e-9))[None, :]).mean(axis=1)
+        order = np.argsort(cost)
+        want = -1 if cost[order[0]] > SHIFT_FIT or cost[order[1]] < SHIFT_MARGIN * cost[order[0]] else order[0]
+        assert got == want
