@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 	# (pip then prints a resolver warning about pyrender's pin, which is expected).
 	$(BIN)/python -m pip install -q 'PyOpenGL==3.1.10' 2>&1 | grep -v "pyrender 0.1.45 requires\|dependency conflicts\|Location" || true
 	$(BIN)/python -c "import mujoco, pyrender, cv2, trimesh, scipy, numpy, numba"
-	# compile the pipeline's numba kernels once (~20-25 s here); cached in pipeline/__pycache__
+	# compile the pipeline's numba kernels once (~30-35 s here); cached in pipeline/__pycache__
 	$(BIN)/python -c "from pipeline.runner import compile_kernels; print(f'pipeline kernels ready in {compile_kernels():.1f} s')"
 	touch $(STAMP)
 

@@ -319,7 +319,7 @@ def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out
 def compile_kernels() -> float:
     """Run the whole chain on two analytic frames so that numba compiles (or loads from its cache)
     every kernel of the common path; returns the seconds it took. The first call after an install
-    compiles (~20-25 s on the 2-core reference machine), later ones load the cached machine code in
+    compiles (~30-35 s on the 2-core reference machine), later ones load the cached machine code in
     well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
     from pipeline.design import load_design
     from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
