@@ -322,10 +322,9 @@ def compile_kernels() -> float:
     compiles (~30-35 s on the 2-core reference machine), later ones load the cached machine code in
     well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
     from pipeline.design import load_design
-    from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
-
     from pipeline.detection import detect_markers
     from pipeline.dtrc import code_rings
+    from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
     t0 = time.perf_counter()
     design = load_design("hexagon127")
