@@ -432,6 +432,17 @@ def _candidates(grey: np.ndarray, params: DetectionParams):
 
 
 @numba.njit(cache=True, nogil=True)
+def _scale_sample(doh, k, x_full, y_full, offs, hs, ws, fxs, fys):
+    """Response of scale ``k`` at full-resolution (x_full, y_full): its level pixel containing the
+    point; -inf where scale ``k`` does not exist (outside the scale list, or a level too small)."""
+    if not (0 <= k < len(hs) and hs[k] > 0):
+        return -np.inf
+    u = min(int((x_full + 0.5) / fxs[k]), ws[k] - 1)     # coordinates are >= 0: truncation floors
+    v = min(int((y_full + 0.5) / fys[k]), max(hs[k] - 1, 0))
+    return np.float64(doh[offs[k] + v * ws[k] + u])
+
+
+@numba.njit(cache=True, nogil=True)
 def _peak_kernel(g, doh, lxx, lyy, lxy, offs, hs, ws, fxs, fys, log_s):
     """Sparse work of :func:`_candidates` on the spatial peaks ``g`` (flat indices into the packed
     scale maps, scale by scale): sub-pixel peak, the cross-scale maximum test against the two
@@ -459,14 +470,8 @@ def _peak_kernel(g, doh, lxx, lyy, lxy, offs, hs, ws, fxs, fys, log_s):
         x_full = (xs + dx + 0.5) * fxs[i_s] - 0.5
         y_full = (ys + dy + 0.5) * fys[i_s] - 0.5
         # response of the neighbouring scales at (x_full, y_full): their level pixel containing it
-        nb = np.full(2, -np.inf)
-        for j in range(2):
-            k = i_s - 1 + 2 * j
-            if 0 <= k < n_s and hs[k] > 0:
-                u = min(int((x_full + 0.5) / fxs[k]), ws[k] - 1)     # coordinates are >= 0: truncation floors
-                v = min(int((y_full + 0.5) / fys[k]), max(hs[k] - 1, 0))
-                nb[j] = doh[offs[k] + v * ws[k] + u]
-        lo, hi = nb[0], nb[1]
+        lo = _scale_sample(doh, i_s - 1, x_full, y_full, offs, hs, ws, fxs, fys)
+        hi = _scale_sample(doh, i_s + 1, x_full, y_full, offs, hs, ws, fxs, fys)
         if not (c >= lo and c >= hi):
             continue
         # continuous scale: parabola through the three responses on the log-sigma axis (the sqrt(2)
