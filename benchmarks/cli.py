@@ -146,6 +146,8 @@ def _report(args: argparse.Namespace) -> int:
     path = write_report(Path(args.dir))
     print(path)
     print(path.with_name("report.html"))
+    if path.with_name("report.png").is_file():
+        print(path.with_name("report.png"))
     return 0
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -135,9 +136,12 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path) -> st
     return "\n".join(lines) + "\n"
 
 
-def write_report(out_dir: Path) -> Path:
+def write_report(out_dir: Path, screenshot: bool = True) -> Path:
     """Write ``out_dir/report.md`` and ``out_dir/report.html`` (:mod:`benchmarks.report_html`: the same
-    content with the sweeps' trade-off plots) from the records there; returns the Markdown path."""
+    content with the sweeps' trade-off plots) from the records there; returns the Markdown path.
+
+    With ``screenshot`` and a Chromium on this machine, ``out_dir/report.png`` is the page as headless
+    Chromium paints it; otherwise an older ``report.png`` is removed rather than left to disagree."""
     out_dir = Path(out_dir)
     records = load_records(out_dir)
     has_sweeps = any(out_dir.glob("sweep_*.json"))
@@ -149,5 +153,15 @@ def write_report(out_dir: Path) -> Path:
     from benchmarks.report_html import render_html
 
     atomic_write_text(path, render_report(records, out_dir))
-    atomic_write_text(out_dir / "report.html", render_html(records, out_dir))
+    html_path = atomic_write_text(out_dir / "report.html", render_html(records, out_dir))
+    png, shot = out_dir / "report.png", None
+    if screenshot:
+        from benchmarks.report_html import write_screenshot
+
+        try:
+            shot = write_screenshot(html_path, png)
+        except (OSError, RuntimeError, TimeoutError) as exc:      # the report stands without its picture
+            print(f"[report] no screenshot of {html_path.name}: {exc}", file=sys.stderr)
+    if shot is None:
+        png.unlink(missing_ok=True)
     return path
