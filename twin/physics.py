@@ -113,7 +113,15 @@ MODEL_CACHE_SIZE = 4         # compiled models kept per process (a press sweep r
                              # several yaws; compiling costs ~0.5-0.9 s of a ~3 s press, a copy ~0.01 s)
 _MODEL_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
 _DERIVED = ("_free", "_qadr", "_top_geom", "_hmin", "_rest_free_m", "_col_top", "_col_bottom", "_is_free_top",
-            "_n_surface_spheres", "_ind_qadr", "_ind_dadr")
+            "_n_surface_spheres", "_ind_qadr", "_ind_dadr", "_stick_nodes", "_stick_free", "_stick_eq",
+            "_stick_k", "_stick_geom")
+STICK_DAMPRATIO = 1.0       # the stick constraint's damping ratio (time constant as the contacts')
+STICK_TIMECONST_STEPS = 4.0
+STICK_FORCE_STEPS = 50      # steps of the running mean of a stuck vertex's constraint force
+STICK_SIGNIFICANCE = 2.0     # ... and slides only by the excess beyond this many standard errors of that mean
+STICK_RELAX = 0.1           # a sliding anchor moves this fraction of the excess force over the vertex stiffness ...
+STICK_MAX_SLIDE_MM = 0.005   # ... and at most this far a step (the neighbours move too: a full step overshoots)
+NORMAL_STEP_MM = 0.05        # central-difference step of the indenter's surface normal
 DRIVEN_INDENTER_MASS_KG = 100.0   # with friction: the indenter's mass, >> the skin's scaled vertex masses, so contact
                                   # forces do not deflect it within a step (its position is re-imposed anyway)
 # collision bits: vertex spheres (2/1) meet the height field (1/2); outer faces (4/8) meet surface spheres (8/4)
@@ -159,6 +167,7 @@ class Checkpoint:
     state: np.ndarray
     pose: tuple
     warnings: list
+    stick: tuple = (None, None, None)   # friction: the stick constraints' anchors, mean forces, their variances
 
 
 @dataclass(frozen=True)
@@ -320,7 +329,8 @@ class SkinSim:
         if hit is None:
             self._build(friction)
             if key is not None:
-                _MODEL_CACHE[key] = (self.model, {a: getattr(self, a) for a in _DERIVED})
+                # a pristine copy: a sim changes its own model as it runs (stick anchors, contacts switched off)
+                _MODEL_CACHE[key] = (copy.copy(self.model), {a: getattr(self, a) for a in _DERIVED})
                 while len(_MODEL_CACHE) > MODEL_CACHE_SIZE:
                     _MODEL_CACHE.popitem(last=False)
         else:
@@ -341,6 +351,11 @@ class SkinSim:
         self.direct_rejections = 0      # ... and attempts it rejected (the path was then followed)
         self.direct_wasted_steps = 0    # physics steps spent on rejected attempts
         self.face_contact_fallback = None  # why face contact was switched off for this sim (None: it was not)
+        self._stick_F = np.zeros((len(self._stick_eq), 3))
+        self._stick_var = np.zeros(len(self._stick_eq))
+        if len(self._stick_eq):
+            self.model.eq_data[self._stick_eq] = 0.0
+            self.data.eq_active[self._stick_eq] = 0
         if self.mesh_spec.face_contact:
             import mujoco as _m
             sph = np.nonzero((self.model.geom_type == _m.mjtGeom.mjGEOM_SPHERE)
@@ -366,23 +381,27 @@ class SkinSim:
         V = len(m.nodes_mm)
         X_m = units.mm_to_m(m.nodes_mm * _FLIP)
         kd = np.zeros(V)
+        ks = np.zeros(V)      # shear part: a surface vertex's stiffness against sliding along the indenter
         for tets, mat in ((m.tets_skin, materials.skin_material(d)), (m.tets_gel, materials.gel_material(d))):
             E, nu = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
             lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
             vol, g, _ = _grad_shape(X_m[tets])
             np.add.at(kd, tets.ravel(), ((lam + 2 * mu) * vol[:, None] * np.sum(g * g, axis=2)).ravel())
+            np.add.at(ks, tets.ravel(), (mu * vol[:, None] * np.sum(g * g, axis=2)).ravel())
         spec = mj.MjSpec()
         spec.modelname = f"skin_{d.name}"
         o = spec.option
         o.integrator = mj.mjtIntegrator.mjINT_DISCRETE
-        o.solver = mj.mjtSolver.mjSOL_CG
+        # CG is ~3x faster a step on the flex; with the stick constraints its inexact solves leave the skin
+        # vibrating (0.03 mm a step) and a press never settles, where Newton's converge (measured: 0.001 mm)
+        o.solver = mj.mjtSolver.mjSOL_NEWTON if friction > 0 else mj.mjtSolver.mjSOL_CG
         o.timestep = dt
         o.gravity = [0.0, 0.0, 0.0]
         o.tolerance = 1e-6
         spec.memory = 256 * 1024 * 1024
         is_top = np.zeros(V, bool)
         is_top[m.top] = True
-        condim = 3 if friction > 0 else 1
+        condim = 1            # friction acts through the stick constraints (_update_stick), not MuJoCo's cone
         r_m = float(units.mm_to_m(CONTACT_RADIUS_MM))
         vertbody, vert = [], np.zeros((V, 3))
         self._free = np.nonzero(~m.pinned)[0]
@@ -449,6 +468,15 @@ class SkinSim:
             body.mass = DRIVEN_INDENTER_MASS_KG
             body.inertia = [DRIVEN_INDENTER_MASS_KG * 1e-4] * 3
             body.explicitinertial = True
+            # stick: one (inactive) point constraint per free outer vertex, switched on by the Coulomb
+            # check in _update_stick while the vertex sticks to the indenter at the point where it touched
+            for n in self._free[is_top[self._free]]:
+                e = spec.add_equality()
+                e.type, e.objtype = mj.mjtEq.mjEQ_CONNECT, mj.mjtObj.mjOBJ_BODY
+                e.name1, e.name2 = f"v{n}", "indenter"
+                e.active = False
+                e.solref = [STICK_TIMECONST_STEPS * dt, STICK_DAMPRATIO]
+                e.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
         else:
             body = spec.worldbody.add_body(name="indenter", mocap=True)
         g = body.add_geom(type=mj.mjtGeom.mjGEOM_HFIELD, hfieldname="indenter",
@@ -476,10 +504,20 @@ class SkinSim:
         self.data = mj.MjData(self.model)
         self._qadr = self.model.jnt_qposadr[:len(self._free) * 3].reshape(-1, 3)
         self._ind_qadr = self._ind_dadr = None
+        self._stick_nodes = self._stick_free = self._stick_eq = np.zeros(0, np.int64)
+        self._stick_k = np.zeros(0)
+        self._stick_geom = np.zeros(0, np.int64)
         if friction > 0:
             jid = [self.model.joint(f"indenter_{n}").id for n in ("x", "y", "z", "yaw")]
             self._ind_qadr = self.model.jnt_qposadr[jid].copy()
             self._ind_dadr = self.model.jnt_dofadr[jid].copy()
+            free_pos = {int(n): i for i, n in enumerate(self._free)}
+            self._stick_nodes = self._free[is_top[self._free]]
+            self._stick_free = np.array([free_pos[int(n)] for n in self._stick_nodes], dtype=np.int64)
+            self._stick_k = ks[self._stick_nodes]
+            self._stick_geom = np.array([self.model.body(f"v{n}").geomadr[0] for n in self._stick_nodes])
+            self._stick_eq = np.arange(len(self._stick_nodes))    # the model's only equalities, in that order
+            assert self.model.neq == len(self._stick_eq)
         self._top_geom = {}
         for n in self._free[is_top[self._free]]:
             self._top_geom[self.model.body(f"v{n}").geomadr[0]] = n
@@ -569,9 +607,93 @@ class SkinSim:
             if driven:
                 self.data.qpos[self._ind_qadr] = self._cmd_q
                 self.data.qvel[self._ind_dadr] = 0.0
+                if len(self._stick_eq):
+                    self._update_stick()
             motion = float(units.m_to_mm(np.max(np.abs(self.data.qpos[idx] - q)))) if len(q) else 0.0
             self.steps_taken += 1
         return motion
+
+    def _update_stick(self) -> None:
+        """Coulomb's law at each outer vertex, with the constraint forces of the step just taken.
+
+        A vertex that comes into contact sticks: a point constraint to the indenter is switched on at the
+        point where it touched, so it moves with the indenter without creeping (MuJoCo's own friction is a
+        velocity-level soft constraint: under a held tangential load it creeps back). Where the tangential
+        force T on a stuck vertex exceeds μN (N its normal force), the anchor slides on the indenter's
+        surface towards where the skin pulls, by the excess over the vertex's tangential stiffness (a
+        return map, as in penalty-based finite-element friction), so a sliding vertex carries μN and no
+        more. The constraint is switched off where N pulls (the skin separates). Normals are the
+        indenter's true surface normals at the vertex.
+        """
+        d, mu = self.data, self.friction
+        eq = self._stick_eq
+        idx = self._qadr[self._stick_free]                       # (K, 3) the vertices' slide DOFs (world axes)
+        F = d.qfrc_constraint[idx]
+        stuck = d.eq_active[eq] != 0
+        a = np.nonzero(stuck | np.any(F != 0.0, axis=1))[0]
+        if not len(a):
+            return
+        # a step's constraint forces carry the inflated vertex masses' transients: the Coulomb check uses
+        # their running mean over ~STICK_FORCE_STEPS steps
+        w = 1.0 / STICK_FORCE_STEPS
+        dev2 = np.sum((F[a] - self._stick_F[a]) ** 2, axis=1)
+        self._stick_F[a] = np.where(stuck[a, None], (1 - w) * self._stick_F[a] + w * F[a], F[a])
+        self._stick_var[a] = np.where(stuck[a], (1 - w) * self._stick_var[a] + w * dev2, 0.0)
+        X = self._rest_free_m[self._stick_free[a]] + d.qpos[idx[a]]            # world m
+        xs = units.m_to_mm(X[:, :2]) * _FLIP[:2]                               # sensor x-y mm
+        h = NORMAL_STEP_MM
+        gx = (self.indenter_z_at(xs + [h, 0]) - self.indenter_z_at(xs - [h, 0])) / (2 * h)
+        gy = (self.indenter_z_at(xs + [0, h]) - self.indenter_z_at(xs - [0, h])) / (2 * h)
+        n = np.stack([gx, -gy, np.ones_like(gx)], axis=1)       # into the skin, world frame
+        n = np.where(np.isfinite(n), n, [0.0, 0.0, 1.0])
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        Fa = self._stick_F[a]
+        N = np.einsum("ij,ij->i", Fa, n)
+        Tv = Fa - N[:, None] * n
+        T = np.linalg.norm(Tv, axis=1)
+        st = stuck[a]
+        p_ind, yaw = d.qpos[self._ind_qadr[:3]], float(d.qpos[self._ind_qadr[3]])
+        c, s_ = math.cos(yaw), math.sin(yaw)
+
+        def to_local(w):
+            return np.stack([c * w[:, 0] + s_ * w[:, 1], -s_ * w[:, 0] + c * w[:, 1], w[:, 2]], axis=1)
+
+        release = st & (N <= 0.0)
+        d.eq_active[eq[a[release]]] = 0
+        self._stuck_contact(a[release], True)
+        # slide only where the excess is beyond the mean's own noise (its standard error, from the running
+        # variance): otherwise the noise walks the anchors at the contact's edge and the press never settles
+        noise = STICK_SIGNIFICANCE * np.sqrt(self._stick_var[a] * w / (2 - w)) * (1 + mu)
+        slide = st & (N > 0.0) & (T - mu * N > noise)
+        if np.any(slide):
+            # the anchor moves against the constraint's tangential force, i.e. where the skin pulls
+            step_m = STICK_RELAX * (T[slide] - mu * N[slide] - noise[slide]) / self._stick_k[a[slide]]
+            step_m = np.minimum(step_m, units.mm_to_m(STICK_MAX_SLIDE_MM))
+            shift = -Tv[slide] / T[slide, None] * step_m[:, None]
+            e = eq[a[slide]]
+            self.model.eq_data[e, 3:6] += to_local(shift)
+        stick = ~st & (N > 0.0)
+        if np.any(stick):
+            e = eq[a[stick]]
+            # the anchor is where the vertex touches the surface: a vertex that lags inside is held on it
+            P = X[stick].copy()
+            zi = -units.mm_to_m(self.indenter_z_at(xs[stick]))                # world z of the surface
+            P[:, 2] = np.where(np.isfinite(zi), np.maximum(P[:, 2], zi), P[:, 2])   # the indenter lies below (world)
+            self.model.eq_data[e, 0:3] = 0.0
+            self.model.eq_data[e, 3:6] = to_local(P - p_ind)
+            d.eq_active[e] = 1
+            self._stuck_contact(a[stick], False)
+
+    def _stuck_contact(self, k: np.ndarray, on: bool) -> None:
+        """A stuck vertex's contact sphere is switched off: its constraint carries the normal load too (a
+        contact and a point constraint on one vertex fight over it, and the press never settles)."""
+        g = self._stick_geom[k]
+        self.model.geom_contype[g] = 2 if on else 0
+        self.model.geom_conaffinity[g] = 1 if on else 0
+
+    def stuck_vertices(self) -> np.ndarray:
+        """Mesh indices of the outer vertices currently stuck to the indenter (friction > 0)."""
+        return self._stick_nodes[self.data.eq_active[self._stick_eq] != 0]
 
     def penetration_mm(self) -> float:
         """Deepest current contact penetration (mm, >= 0): how far a skin vertex lags inside the indenter."""
@@ -725,7 +847,8 @@ class SkinSim:
         spec = self._mj.mjtState.mjSTATE_INTEGRATION
         state = np.empty(self._mj.mj_stateSize(self.model, spec))
         self._mj.mj_getState(self.model, self.data, state, spec)
-        return Checkpoint(state, self.pose, [int(w.number) for w in self.data.warning])
+        return Checkpoint(state, self.pose, [int(w.number) for w in self.data.warning],
+                          (self.model.eq_data[self._stick_eq].copy(), self._stick_F.copy(), self._stick_var.copy()))
 
     def restore(self, cp: "Checkpoint") -> None:
         """Undo everything since :meth:`checkpoint` bit for bit, the warnings raised meanwhile included
@@ -733,6 +856,11 @@ class SkinSim:
         self._mj.mj_setState(self.model, self.data, cp.state, self._mj.mjtState.mjSTATE_INTEGRATION)
         for w, n in zip(self.data.warning, cp.warnings):
             w.number = n
+        self.model.eq_data[self._stick_eq] = cp.stick[0]
+        self._stick_F, self._stick_var = cp.stick[1].copy(), cp.stick[2].copy()
+        stuck = self.data.eq_active[self._stick_eq] != 0
+        self._stuck_contact(np.nonzero(~stuck)[0], True)
+        self._stuck_contact(np.nonzero(stuck)[0], False)
         self.set_pose(*cp.pose)
         self._mj.mj_forward(self.model, self.data)
 
