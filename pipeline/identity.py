@@ -1,0 +1,1036 @@
+"""The certainty rule of marker identification: an id is emitted only when the geometry leaves no
+other reading; every other marker is unmatched, with a reason.
+
+Ring coding (:mod:`pipeline.dtrc`), a lattice registration and the previous frame only *propose*
+ids. A proposal becomes an identification through three tests, each about the sensor's geometry:
+
+1. **Local consistency.** A marker's closed design neighbourhood (the marker and its identified
+   design neighbours within 1.5 separations) must be one smooth piece of skin: every member lies
+   within :data:`GATE` local separations of the position a local affine map fitted to the *others*
+   predicts for it (leave-one-out). The fit needs three non-collinear neighbours; the local map
+   must keep orientation (the image is not mirrored) and may stretch at most :data:`MAX_STRETCH`
+   times more along one axis than along the other. A skin can bulge, shear and crowd smoothly; it
+   cannot swap two neighbours, and a marker labelled as its neighbour sits a whole separation from
+   its prediction. Inconsistent markers are removed until every remaining neighbourhood agrees.
+2. **Anchoring.** Local consistency fixes ids only up to the lattice's own symmetries: a patch of
+   correctly related markers could be shifted by a lattice vector, or (rings of a circular
+   pattern) turned by one slot per ring, and still be locally perfect. Each connected patch of
+   identified markers is compared with every such alternative reading of the design; an
+   alternative is excluded by evidence: markers of the patch that it would push outside the design
+   (they are there, consistent with their neighbours, so the design must contain them) plus markers
+   whose neighbourhoods it breaks. A patch is anchored only if every alternative is excluded by at
+   least :data:`ANCHOR_EVIDENCE` markers; otherwise all its ids are withdrawn ("not anchored").
+   A patch that does not reach the pattern's outer ring on enough sides (e.g. the far side of an
+   occlusion) is therefore left unidentified rather than guessed.
+3. **Rotation.** Turning the pattern by its symmetry angle (60 deg for hexagonal and circular
+   patterns, 90 deg for square ones) changes nothing in the image. The in-plane rotation of each
+   patch (Procrustes, image against design) must be within +-(half the symmetry angle - 7.5 deg),
+   i.e. +-22.5 deg or +-37.5 deg; beyond, the patch is withdrawn ("rotation ambiguous").
+
+Growth extends anchored patches: a free design slot predicted from three or more identified
+neighbours takes the nearest blob when it lies within :data:`GROW_GATE` local separations, is at
+least twice as near as the second-nearest blob (and 0.15 separations nearer), and no other free
+slot claims it; new ids then pass the same three tests.
+
+What remains possible, by construction: a blob that is not a marker but sits where a missing
+marker should be (within :data:`GROW_GATE` of its slot) is indistinguishable from that marker
+displaced, and takes its id. The identification benchmark therefore places spurious blobs at least
+half a separation from the slots of missing markers (anywhere else, including next to present
+markers, is allowed).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.kdtree import kd_build, kd_query
+
+__all__ = ["GATE", "GROW_GATE", "ANCHOR_EVIDENCE", "MAX_STRETCH", "ROTATION_MARGIN_DEG", "REASONS",
+           "lattice_of", "consistent", "certify", "grow", "register_seed", "rotation_limit_deg"]
+
+#: Leave-one-out gate, in local separations. A correct marker's prediction error is its own centre
+#: error plus the fit's (detector noise ~0.01, jitter tested up to 0.3); a marker carrying its
+#: neighbour's id is ~1 separation off.
+GATE = 0.35
+#: Growth gate, in local separations: a blob farther than this from a free slot's prediction is not
+#: taken (a neighbouring marker is >= 0.7 separations away even with 0.3 separations of jitter).
+GROW_GATE = 0.4
+#: A blob takes (or keeps) an id only if it is at least twice as near to the slot's prediction as
+#: any other blob and this many local separations nearer.
+AMBIGUITY_MARGIN = 0.15
+#: Markers of evidence needed to exclude an alternative reading of a patch.
+ANCHOR_EVIDENCE = 2
+#: Largest ratio of the two singular values of a local affine map. Pins crowding on a steep flank
+#: exceed 1.6 (a twin terrain tap on hexagon217 lost 27 of 217 ids at 1.6); a patch whose ids jump
+#: by one slot across a seam fits as a shear of about one separation per row (ratio ~2-3).
+MAX_STRETCH = 2.0
+#: Margin kept from half the pattern's symmetry angle.
+ROTATION_MARGIN_DEG = 7.5
+#: Radius (design separations) of the neighbourhood a local affine map is fitted to: two shells,
+#: so that a slot on the convex edge of an identified patch (two immediate neighbours) still has a
+#: fit, while the map stays local (a press changes the skin's local scale over several separations).
+NEIGHBOURHOOD_PITCHES = 2.1
+#: A circular pattern's first three rings must each fit an affine image of the design ring to within
+#: this fraction of ring 1's radius (measured: <= 0.17 under a 5 mm off-centre press through the
+#: nominal cameras; a reading centred on a marker of ring 1 leaves >= 0.31 on ring 2, 0.39 on ring 3).
+RING_ROUND = 0.22
+#: ... and their centres must agree to within this fraction of ring 1's radius (a reading centred
+#: on a marker of ring 1 is a whole radius off).
+RING_CENTRE = 0.3
+#: Radius (design separations) about its anchor slot within which a similarity placement proposes
+#: ids (growth takes over beyond: a press bulges the pattern by up to ~15 % of its radius).
+SEED_RADIUS = 3.5
+#: Identified immediate neighbours (within 1.5 separations) a marker needs.
+MIN_IMMEDIATE = 2
+#: ... and to count as evidence against an alternative reading that would put it outside the design.
+#: A spurious blob just outside the pattern, which a reading shifted by one row takes for an outer-
+#: ring marker, has only the two true outer-ring markers beside it; the markers of a pattern's outer
+#: ring have three or four.
+EVIDENCE_IMMEDIATE = 3
+#: With this many identified immediate neighbours a marker's neighbourhood fit uses only them (the
+#: second shell is used where fewer are identified: at the edge of a patch or of a gap).
+LOCAL_ONLY = 5
+#: A patch is withdrawn when unidentified blobs sit where the lattice would continue one step
+#: beyond the design's outer ring (hexagonal, square) beside this many consecutive outer-ring slots:
+#: a reading shifted by one row leaves the pattern's real outer row there (a side of 7-9 blobs in a
+#: row); spurious blobs land there scattered.
+BEYOND_HITS = 5
+#: Smallest patch that is reported (a patch needs neighbourhoods of three to be tested at all).
+MIN_PATCH = 4
+
+# per-slot reason codes (0 = identified)
+R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION = range(7)
+REASONS = {
+    R_NO_BLOB: "no blob at its predicted position",
+    R_AMBIGUOUS: "two blobs near its predicted position",
+    R_INCONSISTENT: "inconsistent with its identified neighbours",
+    R_FEW: "fewer than three identified neighbours",
+    R_ANCHOR: "in a patch that could be shifted along the lattice (not anchored)",
+    R_ROTATION: "pattern rotation beyond the unambiguous range",
+}
+
+
+@dataclass(frozen=True)
+class Lattice:
+    """Design geometry the certainty rule needs, computed once per pattern.
+
+    ``xy`` (N, 2) design x-y (mm); ``pitch`` median nearest-neighbour distance (mm); ``nbr`` (N, K)
+    design neighbours within 1.5 pitches, -1 padded, nearest first; ``nbr2`` the same within
+    :data:`NEIGHBOURHOOD_PITCHES`; ``alpha_deg`` rotational symmetry angle;
+    ``alt`` (A, N) slot -> slot maps of the alternative readings (-1: outside the design);
+    ``alt_names`` their descriptions; ``layer_of`` (N,) ring of each slot (0 = centre);
+    ``translation_lattice`` whether the pattern is a piece of a translation lattice (hexagonal,
+    square) rather than rings of equally spaced markers (circular); ``alt_first`` (A, N) 0 where an
+    alternative breaks the slot's neighbourhood on the design itself (tested first), else 1;
+    ``beyond_slot`` (V,), ``beyond_xy`` (V, 2) lattice sites one step beyond the outer ring and the
+    outer-ring slot each is predicted from (empty for circular patterns).
+    """
+
+    xy: np.ndarray
+    pitch: float
+    nbr: np.ndarray
+    nbr2: np.ndarray
+    alpha_deg: float
+    alt: np.ndarray
+    alt_names: tuple
+    layer_of: np.ndarray
+    translation_lattice: bool
+    alt_first: np.ndarray
+    beyond_slot: np.ndarray
+    beyond_xy: np.ndarray
+    outer_ring: np.ndarray
+
+
+_CACHE: dict = {}
+
+
+def lattice_of(design) -> Lattice:
+    key = (design.pattern.kind, design.pattern.layers, design.pattern.separation_mm)
+    if key in _CACHE:
+        return _CACHE[key]
+    xy = np.ascontiguousarray(design.rest_markers_mm()[:, :2], dtype=np.float64)
+    layers = design.marker_layers()
+    n = len(xy)
+    tree = cKDTree(xy)
+    d, _ = tree.query(xy, k=2)
+    pitch = float(np.median(d[:, 1]))
+    def table(radius):
+        lists = tree.query_ball_point(xy, radius * pitch)
+        k = max(len(x) for x in lists) - 1
+        t = np.full((n, max(k, 1)), -1, np.int64)
+        for i, lst in enumerate(lists):
+            others = sorted((j for j in lst if j != i), key=lambda j: (np.hypot(*(xy[j] - xy[i])), j))
+            t[i, :len(others)] = others
+        return t
+
+    nbr, nbr2 = table(1.5), table(NEIGHBOURHOOD_PITCHES)
+    # rotational symmetry: the largest k-fold rotation mapping the design onto itself
+    c = xy.mean(axis=0)
+    alpha = 360.0
+    for fold in (12, 8, 6, 4, 3, 2):
+        t = 2 * math.pi / fold
+        R = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+        dd, _ = tree.query((xy - c) @ R.T + c)
+        if np.all(dd < 0.1 * pitch):
+            alpha = 360.0 / fold
+            break
+    # alternatives: every lattice translation that keeps some slots on slots, and ring twists
+    centre = int(np.argmin(np.hypot(*(xy - c).T)))
+    maps, names = [], []
+    for s in range(n):
+        if s == centre:
+            continue
+        t = xy[s] - xy[centre]
+        dd, jj = tree.query(xy + t)
+        m = np.where(dd < 0.25 * pitch, jj, -1)
+        if np.count_nonzero(m >= 0) >= MIN_PATCH:
+            maps.append(m)
+            names.append(f"shifted by ({t[0]:+.2f}, {t[1]:+.2f}) mm")
+    for j in (-2, -1, 1, 2):
+        m = np.arange(n)
+        for lay in np.unique(layers):
+            ids = np.flatnonzero(layers == lay)
+            if len(ids) > 1:
+                m[ids] = ids[(np.arange(len(ids)) + j) % len(ids)]
+        maps.append(m)
+        names.append(f"each ring turned by {j:+d} slot(s)")
+    # rings read one ring further out / in (slot -> the slot of the next ring at the nearest angle):
+    # on a circular pattern a patch away from the centre is locally the same either way
+    ring_ids = [np.flatnonzero(layers == lay) for lay in range(int(layers.max()) + 1)]
+    ang = np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0])
+    for step in (1, -1):
+        m = np.full(n, -1, np.int64)
+        for lay, ids in enumerate(ring_ids):
+            if not 0 <= lay + step < len(ring_ids):
+                continue
+            tgt = ring_ids[lay + step]
+            if len(ids) == 1 or len(tgt) == 1:
+                m[ids] = tgt[0] if len(tgt) == 1 else -1
+                continue
+            dang = np.abs(np.angle(np.exp(1j * (ang[ids][:, None] - ang[tgt][None, :]))))
+            m[ids] = tgt[np.argmin(dang, axis=1)]
+        maps.append(m)
+        names.append(f"rings read one ring {'further out' if step > 0 else 'further in'}")
+    # hexagonal and square patterns are pieces of a translation lattice; circular ones are not
+    lattice = design.pattern.kind in ("hexagon", "square")
+    # sites one lattice step beyond the outer ring (hexagonal and square patterns): a reading
+    # shifted by a row finds the pattern's real outer row there
+    v_slot, v_xy = [], []
+    if lattice:
+        centre_nb = nbr[centre][nbr[centre] >= 0]
+        steps = xy[centre_nb] - xy[centre]
+        steps = steps[np.hypot(*steps.T) <= 1.1 * pitch]
+        outer = np.flatnonzero(layers == layers.max())
+        for s_ in outer:
+            for v in steps:
+                q = xy[s_] + v
+                if tree.query(q)[0] > 0.5 * pitch:
+                    v_slot.append(s_)
+                    v_xy.append(q)
+    v_slot = np.asarray(v_slot, np.int64)
+    v_xy = np.asarray(v_xy, np.float64).reshape(-1, 2)
+    # per alternative: 0 for the slots whose neighbourhoods it breaks on the design itself, else 1
+    alt = np.array(maps, np.int64).reshape(-1, n)
+    first = np.ones(alt.shape, np.int64)
+    dtree = kd_build(xy)
+    for a in range(len(alt)):
+        g = alt[a].copy()
+        u, cnt = np.unique(g[g >= 0], return_counts=True)
+        g[np.isin(g, u[cnt > 1])] = -1
+        st = _consistency(xy, dtree, g, _blob_of(g, n), xy, nbr, nbr2, pitch, GATE, np.arange(n), 0)
+        first[a, st == R_INCONSISTENT] = 0
+    outer_ring = np.flatnonzero(layers == layers.max()).astype(np.int64)
+    lat = Lattice(xy, pitch, nbr, nbr2, alpha, alt, tuple(names),
+                  layers.astype(np.int64), lattice, first, v_slot, v_xy, outer_ring)
+    _CACHE[key] = lat
+    return lat
+
+
+def rotation_limit_deg(lat: Lattice) -> float:
+    """Largest |in-plane rotation| at which ids are emitted (half the symmetry angle minus the margin)."""
+    return lat.alpha_deg / 2 - ROTATION_MARGIN_DEG
+
+
+# ----- local affine fits ------------------------------------------------------------------------
+
+@numba.njit(cache=True)
+def _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov):
+    """Sums over points ``0..m-1`` of (slots, blobs) for :func:`_fit`, coordinates taken relative to
+    (ox, oy) in the design and (ou, ov) in the image (keeps the downdated sums well conditioned)."""
+    acc = np.zeros(12)
+    for i in range(m):
+        x = xy[slots[i], 0] - ox
+        y = xy[slots[i], 1] - oy
+        u = pts[blobs[i], 0] - ou
+        v = pts[blobs[i], 1] - ov
+        acc[0] += 1.0
+        acc[1] += x
+        acc[2] += y
+        acc[3] += u
+        acc[4] += v
+        acc[5] += x * x
+        acc[6] += x * y
+        acc[7] += y * y
+        acc[8] += u * x
+        acc[9] += u * y
+        acc[10] += v * x
+        acc[11] += v * y
+    return acc
+
+
+@numba.njit(cache=True)
+def _fit(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch):
+    """Affine map design -> image from the points summed in ``acc`` (:func:`_fit_sums`) without
+    point ``skip`` (-1: none).
+
+    Returns (ok, mean design x, y, mean image u, v, L00, L01, L10, L11), means relative to the
+    origins of :func:`_fit_sums`. ``ok`` is 1 for a usable map, 0 when fewer than three points
+    remain or they are (nearly) collinear, -1 when the map mirrors or stretches more than
+    MAX_STRETCH (no smooth skin does that).
+    """
+    c = acc.copy()
+    if skip >= 0:
+        x = xy[slots[skip], 0] - ox
+        y = xy[slots[skip], 1] - oy
+        u = pts[blobs[skip], 0] - ou
+        v = pts[blobs[skip], 1] - ov
+        c[0] -= 1.0
+        c[1] -= x
+        c[2] -= y
+        c[3] -= u
+        c[4] -= v
+        c[5] -= x * x
+        c[6] -= x * y
+        c[7] -= y * y
+        c[8] -= u * x
+        c[9] -= u * y
+        c[10] -= v * x
+        c[11] -= v * y
+    cnt = c[0]
+    if cnt < 2.5:
+        return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    mx, my, mu, mv = c[1] / cnt, c[2] / cnt, c[3] / cnt, c[4] / cnt
+    sxx = c[5] - cnt * mx * mx
+    sxy = c[6] - cnt * mx * my
+    syy = c[7] - cnt * my * my
+    cux = c[8] - cnt * mu * mx
+    cuy = c[9] - cnt * mu * my
+    cvx = c[10] - cnt * mv * mx
+    cvy = c[11] - cnt * mv * my
+    det = sxx * syy - sxy * sxy
+    tr = sxx + syy
+    lam_min = tr / 2 - math.sqrt(max(tr * tr / 4 - det, 0.0))
+    if lam_min < 0.1 * pitch * pitch:
+        return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    i00, i01, i11 = syy / det, -sxy / det, sxx / det
+    l00 = cux * i00 + cuy * i01
+    l01 = cux * i01 + cuy * i11
+    l10 = cvx * i00 + cvy * i01
+    l11 = cvx * i01 + cvy * i11
+    dl = l00 * l11 - l01 * l10
+    if dl <= 0.0:
+        return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
+    s_max = math.sqrt(max(fro / 2 + math.sqrt(max(fro * fro / 4 - dl * dl, 0.0)), 0.0))
+    s_min = dl / s_max
+    if s_max > MAX_STRETCH * s_min:
+        return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    return 1, mx, my, mu, mv, l00, l01, l10, l11
+
+
+@numba.njit(cache=True)
+def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, pitch, gate, order, stop_after):
+    """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
+
+    The neighbourhood of a blob's slot is the identified slots of ``nbr2``; the blob itself and
+    each identified immediate neighbour (``nbr``) must lie within ``gate`` local pitches of the
+    position the affine map fitted to the rest of the neighbourhood predicts for it; and the blob
+    must be the unambiguous nearest blob to its own prediction (R_AMBIGUOUS otherwise: at least
+    twice as near as the second-nearest and 0.15 pitches nearer). ``tree``: :func:`kd_build` of
+    ``pts``. Blobs are visited in ``order``; with ``stop_after`` > 0 the visit stops once that many
+    are inconsistent (the anchoring test needs only that much evidence)."""
+    n = len(slot_of)
+    status = np.zeros(n, np.int64)
+    K = nbr2.shape[1]
+    K1 = nbr.shape[1]
+    slots = np.empty(K + 1, np.int64)
+    blobs = np.empty(K + 1, np.int64)
+    immediate = np.zeros(K + 1, np.bool_)
+    two = np.empty(2, np.int64)
+    two_d2 = np.empty(2)
+    n_bad = 0
+    for b in order:
+        if stop_after > 0 and n_bad >= stop_after:
+            break
+        s = slot_of[b]
+        if s < 0:
+            continue
+        slots[0] = s
+        blobs[0] = b
+        immediate[0] = True
+        m = 1
+        n_imm = 0
+        for k in range(K):
+            j = nbr2[s, k]
+            if j < 0:
+                break
+            if blob_of[j] >= 0:
+                slots[m] = j
+                blobs[m] = blob_of[j]
+                imm = False
+                for k1 in range(K1):
+                    if nbr[s, k1] == j:
+                        imm = True
+                        break
+                immediate[m] = imm
+                if imm:
+                    n_imm += 1
+                m += 1
+        if m < 4 or n_imm < MIN_IMMEDIATE:
+            status[b] = R_FEW
+            continue
+        if n_imm >= LOCAL_ONLY:
+            # enough immediate neighbours (they come first: nbr2 is sorted by distance): fit only
+            # the closed immediate neighbourhood, where a strongly curved press is still affine
+            m = 1 + n_imm
+        ok0 = True
+        ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
+        acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov)
+        for q in range(m):
+            if not immediate[q]:
+                continue
+            ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, q, ox, oy, ou, ov, pitch)
+            if ok < 0:
+                status[b] = R_INCONSISTENT
+                n_bad += 1
+                break
+            if ok == 0:
+                if q == 0:
+                    ok0 = False
+                    break
+                continue
+            dx = xy[slots[q], 0] - ox - mx
+            dy = xy[slots[q], 1] - oy - my
+            pu = ou + mu + l00 * dx + l01 * dy
+            pv = ov + mv + l10 * dx + l11 * dy
+            scale = math.sqrt(l00 * l11 - l01 * l10) * pitch
+            r = math.hypot(pts[blobs[q], 0] - pu, pts[blobs[q], 1] - pv) / scale
+            if r > gate:
+                status[b] = R_INCONSISTENT
+                n_bad += 1
+                break
+            if q == 0 and len(pts) >= 2:
+                kd_query(pts, tree, pu, pv, 2, two, two_d2)
+                d1 = math.sqrt(two_d2[0]) / scale
+                d2 = math.sqrt(two_d2[1]) / scale
+                if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
+                    status[b] = R_AMBIGUOUS
+                    break
+        if not ok0:
+            status[b] = R_FEW
+    return status
+
+
+@numba.njit(cache=True)
+def _predict_free(pts, blob_of, xy, nbr, pitch):
+    """Predicted image position and local pitch (px) of every free slot with a usable fit from its
+    identified neighbours; ``scale`` 0 where there is none."""
+    N = len(blob_of)
+    K = nbr.shape[1]
+    pred = np.zeros((N, 2))
+    scale = np.zeros(N)
+    slots = np.empty(K, np.int64)
+    blobs = np.empty(K, np.int64)
+    for s in range(N):
+        if blob_of[s] >= 0:
+            continue
+        m = 0
+        for k in range(K):
+            j = nbr[s, k]
+            if j < 0:
+                break
+            if blob_of[j] >= 0:
+                slots[m] = j
+                blobs[m] = blob_of[j]
+                m += 1
+        if m < 3:
+            continue
+        ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[blobs[0], 0], pts[blobs[0], 1]
+        acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov)
+        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, -1, ox, oy, ou, ov, pitch)
+        if ok <= 0:
+            continue
+        pred[s, 0] = ou + mu - l00 * mx - l01 * my
+        pred[s, 1] = ov + mv - l10 * mx - l11 * my
+        scale[s] = math.sqrt(l00 * l11 - l01 * l10) * pitch
+    return pred, scale
+
+
+# ----- the rule ---------------------------------------------------------------------------------
+
+_TREES: dict = {}
+
+
+def _tree(pts: np.ndarray):
+    """:func:`kd_build` of the blob centres, kept for the arrays of the frame being identified."""
+    key = id(pts)
+    hit = _TREES.get(key)
+    if hit is not None and hit[0] is pts:
+        return hit[1]
+    _TREES.clear()
+    t = kd_build(pts)
+    _TREES[key] = (pts, t)
+    return t
+
+
+def _blob_of(slot_of: np.ndarray, n_slots: int) -> np.ndarray:
+    b = np.full(n_slots, -1, np.int64)
+    lab = np.flatnonzero(slot_of >= 0)
+    b[slot_of[lab]] = lab
+    return b
+
+
+def consistent(pts, slot_of, lat, reason):
+    """Remove labels failing local consistency until none does; records the reason per slot."""
+    slot_of = slot_of.copy()
+    for _ in range(len(lat.xy)):
+        st = _consistency(pts, _tree(pts), slot_of, _blob_of(slot_of, len(lat.xy)), lat.xy, lat.nbr, lat.nbr2,
+                          lat.pitch, GATE, np.arange(len(slot_of)), 0)
+        bad = np.flatnonzero(st > 0)
+        if len(bad) == 0:
+            break
+        reason[slot_of[bad]] = st[bad]
+        slot_of[bad] = -1
+    return slot_of
+
+
+@numba.njit(cache=True)
+def _beyond_hits(pts, tree, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gate):
+    """Per lattice site beyond the outer ring whose outer-ring slot is identified: 1 when an
+    unidentified blob lies within ``gate`` local pitches of the site's position predicted from that
+    slot's identified neighbourhood, else 0."""
+    K = nbr2.shape[1]
+    slots = np.empty(K + 1, np.int64)
+    blobs = np.empty(K + 1, np.int64)
+    one = np.empty(1, np.int64)
+    one_d2 = np.empty(1)
+    hit = np.zeros(len(v_slot), np.int64)
+    for v in range(len(v_slot)):
+        s = v_slot[v]
+        b = blob_of[s]
+        if b < 0:
+            continue
+        slots[0] = s
+        blobs[0] = b
+        m = 1
+        for k in range(K):
+            j = nbr2[s, k]
+            if j < 0:
+                break
+            if blob_of[j] >= 0:
+                slots[m] = j
+                blobs[m] = blob_of[j]
+                m += 1
+        ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
+        acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov)
+        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, -1, ox, oy, ou, ov, pitch)
+        if ok <= 0:
+            continue
+        dx = v_xy[v, 0] - ox - mx
+        dy = v_xy[v, 1] - oy - my
+        pu = ou + mu + l00 * dx + l01 * dy
+        pv = ov + mv + l10 * dx + l11 * dy
+        kd_query(pts, tree, pu, pv, 1, one, one_d2)
+        if slot_of[one[0]] < 0 and math.sqrt(one_d2[0]) <= gate * math.sqrt(l00 * l11 - l01 * l10) * pitch:
+            hit[v] = 1
+    return hit
+
+
+@numba.njit(cache=True)
+def _components(slot_of, blob_of, nbr):
+    """Connected patches of identified blobs (design neighbours within 1.5 pitches both identified):
+    patch index per blob, -1 for unidentified blobs."""
+    n = len(slot_of)
+    comp = np.full(n, -1, np.int64)
+    stack = np.empty(n, np.int64)
+    c = 0
+    for b0 in range(n):
+        if slot_of[b0] < 0 or comp[b0] >= 0:
+            continue
+        comp[b0] = c
+        sp = 0
+        stack[sp] = b0
+        sp += 1
+        while sp > 0:
+            sp -= 1
+            b = stack[sp]
+            s = slot_of[b]
+            for k in range(nbr.shape[1]):
+                j = nbr[s, k]
+                if j < 0:
+                    break
+                bj = blob_of[j]
+                if bj >= 0 and comp[bj] < 0:
+                    comp[bj] = c
+                    stack[sp] = bj
+                    sp += 1
+        c += 1
+    return comp
+
+
+def _rotation_deg(pts_img, xy_des) -> float:
+    a = xy_des - xy_des.mean(axis=0)
+    b = pts_img - pts_img.mean(axis=0)
+    c = a.T @ b  # 2x2: sum a_i b_i^T
+    return math.degrees(math.atan2(c[0, 1] - c[1, 0], c[0, 0] + c[1, 1]))
+
+
+def _circle(p: np.ndarray):
+    """Least-squares circle (centre (2,), radius) through points (m, 2), m >= 3 (Kasa's fit)."""
+    A = np.column_stack([2 * p, np.ones(len(p))])
+    sol, *_ = np.linalg.lstsq(A, (p * p).sum(axis=1), rcond=None)
+    c = sol[:2]
+    return c, math.sqrt(max(sol[2] + c @ c, 0.0))
+
+
+def _centre_holds(pts, slot_of, members, lat) -> bool:
+    """The first three rings of a circular pattern, as identified, are rings of equally spaced
+    markers about one point, seen through one smooth map: each ring's blobs (at least 2/3 of its
+    slots) fit an affine image of the design ring to within :data:`RING_ROUND` of ring 1's mean
+    radius, the three fits share their centre (within :data:`RING_CENTRE`: an off-centre press
+    moves the rings' centres apart by ~0.1 radius) and their shape (linear parts proportional to
+    within 25 %: a press changes each ring's radius, a camera's perspective is common to all).
+    About a marker of ring 1 the pattern also shows rings of about six and twelve markers, but its
+    third ring is not eighteen markers 20 deg apart."""
+    return _centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
+
+
+@numba.njit(cache=True)
+def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre):
+    """:func:`_centre_holds` (compiled)."""
+    c0x = 0.0
+    c0y = 0.0
+    for s in range(len(layer_of)):
+        if layer_of[s] == 0:
+            c0x, c0y = xy[s, 0], xy[s, 1]
+    L = np.zeros((3, 2, 2))
+    cen = np.zeros((3, 2))
+    res = np.zeros(3)
+    sel = np.empty(len(members), np.int64)
+    slots = np.empty(len(members), np.int64)
+    for k in range(1, 4):
+        size = 0
+        for s in range(len(layer_of)):
+            if layer_of[s] == k:
+                size += 1
+        m = 0
+        for b in members:
+            if layer_of[slot_of[b]] == k:
+                sel[m] = b
+                slots[m] = slot_of[b]
+                m += 1
+        if m < max(int(math.ceil(2.0 / 3.0 * size)), 4):
+            return False
+        acc = _fit_sums(xy, pts, slots, sel, m, c0x, c0y, 0.0, 0.0)
+        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, sel, acc, -1, c0x, c0y, 0.0, 0.0, 1e-9)
+        if ok == 0:
+            return False
+        if ok < 0:
+            # refit without the plausibility limits: a ring is judged by its residuals below
+            cnt = acc[0]
+            mx, my, mu, mv = acc[1] / cnt, acc[2] / cnt, acc[3] / cnt, acc[4] / cnt
+            sxx = acc[5] - cnt * mx * mx
+            sxy = acc[6] - cnt * mx * my
+            syy = acc[7] - cnt * my * my
+            det = sxx * syy - sxy * sxy
+            i00, i01, i11 = syy / det, -sxy / det, sxx / det
+            cux = acc[8] - cnt * mu * mx
+            cuy = acc[9] - cnt * mu * my
+            cvx = acc[10] - cnt * mv * mx
+            cvy = acc[11] - cnt * mv * my
+            l00 = cux * i00 + cuy * i01
+            l01 = cux * i01 + cuy * i11
+            l10 = cvx * i00 + cvy * i01
+            l11 = cvx * i01 + cvy * i11
+        L[k - 1, 0, 0], L[k - 1, 0, 1], L[k - 1, 1, 0], L[k - 1, 1, 1] = l00, l01, l10, l11
+        cen[k - 1, 0] = mu - l00 * mx - l01 * my
+        cen[k - 1, 1] = mv - l10 * mx - l11 * my
+        r = 0.0
+        for i in range(m):
+            dx = xy[slots[i], 0] - c0x
+            dy = xy[slots[i], 1] - c0y
+            pu = cen[k - 1, 0] + l00 * dx + l01 * dy
+            pv = cen[k - 1, 1] + l10 * dx + l11 * dy
+            r = max(r, math.hypot(pts[sel[i], 0] - pu, pts[sel[i], 1] - pv))
+        res[k - 1] = r
+    rad1 = 0.0
+    n1 = 0
+    for b in members:
+        if layer_of[slot_of[b]] == 1:
+            rad1 += math.hypot(pts[b, 0] - cen[0, 0], pts[b, 1] - cen[0, 1])
+            n1 += 1
+    rad1 /= n1
+    if max(res[0], max(res[1], res[2])) > ring_round * rad1:
+        return False
+    for k in range(1, 3):
+        if math.hypot(cen[k, 0] - cen[0, 0], cen[k, 1] - cen[0, 1]) > ring_centre * rad1:
+            return False
+        num = 0.0
+        den = 0.0
+        for i in range(2):
+            for j in range(2):
+                num += L[k, i, j] * L[0, i, j]
+                den += L[0, i, j] * L[0, i, j]
+        sc = num / den
+        if not sc > 0:
+            return False
+        dev = 0.0
+        ref = 0.0
+        for i in range(2):
+            for j in range(2):
+                dev += (L[k, i, j] - sc * L[0, i, j]) ** 2
+                ref += (sc * L[0, i, j]) ** 2
+        if math.sqrt(dev) > 0.25 * math.sqrt(ref):
+            return False
+    for b in members:
+        if layer_of[slot_of[b]] == 0:
+            if math.hypot(pts[b, 0] - cen[0, 0], pts[b, 1] - cen[0, 1]) > ring_centre * rad1:
+                return False
+    return True
+
+
+def _anchored(pts, slot_of, members, lat) -> bool:
+    """Is the patch ``members`` (blob indices) excluded from every alternative reading?"""
+    if not lat.translation_lattice and not _centre_holds(pts, slot_of, members, lat):
+        # rings of equally spaced markers read one ring further out, turned, or shifted by a
+        # marker are locally almost a hexagonal lattice; only the rings about the centre fix the
+        # reading: they must be concentric circles about one point
+        return False
+    if len(lat.alt) == 0:
+        return True
+    return _alternatives_excluded(pts, _tree(pts), slot_of, members, lat.alt, lat.alt_first, lat.xy, lat.nbr,
+                                  lat.nbr2, lat.pitch, GATE, ANCHOR_EVIDENCE)
+
+
+@numba.njit(cache=True)
+def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr, nbr2, pitch, gate, evidence):
+    """Every alternative reading ``alt[a]`` of the patch ``members`` is excluded by ``evidence``
+    markers: pushed outside the design (its map gives -1; only markers with EVIDENCE_IMMEDIATE
+    identified immediate neighbours count) or inconsistent under it. A reading that
+    sends two markers to one slot keeps neither (no evidence either way). Blobs whose slots the
+    reading breaks on the design itself (``alt_first`` 0) are tested first, and the test stops once
+    the evidence is complete."""
+    n_slots = alt.shape[1]
+    n = len(slot_of)
+    alt_slot = np.full(n, -1, np.int64)
+    blob_of = np.full(n_slots, -1, np.int64)
+    hits = np.zeros(n_slots, np.int64)
+    order = np.empty(len(members), np.int64)
+    # identified immediate neighbours of each member: only well-embedded markers are evidence
+    in_patch = np.zeros(n_slots, np.bool_)
+    for b in members:
+        in_patch[slot_of[b]] = True
+    embedded = np.zeros(n, np.bool_)
+    for b in members:
+        c = 0
+        for k in range(nbr.shape[1]):
+            j = nbr[slot_of[b], k]
+            if j < 0:
+                break
+            if in_patch[j]:
+                c += 1
+        embedded[b] = c >= EVIDENCE_IMMEDIATE
+    for a in range(alt.shape[0]):
+        outside = 0
+        for b in members:
+            if alt[a, slot_of[b]] < 0 and embedded[b]:
+                outside += 1
+                if outside >= evidence:
+                    break
+        if outside >= evidence:
+            continue
+        hits[:] = 0
+        for b in members:
+            t = alt[a, slot_of[b]]
+            if t >= 0:
+                hits[t] += 1
+        for b in members:
+            t = alt[a, slot_of[b]]
+            alt_slot[b] = t if (t >= 0 and hits[t] == 1) else -1
+        blob_of[:] = -1
+        for b in members:
+            if alt_slot[b] >= 0:
+                blob_of[alt_slot[b]] = b
+        k = 0
+        for first in range(2):
+            for b in members:
+                if alt_first[a, slot_of[b]] == first:
+                    order[k] = b
+                    k += 1
+        need = evidence - outside
+        st = _consistency(pts, tree, alt_slot, blob_of, xy, nbr, nbr2, pitch, gate, order, need)
+        bad = 0
+        for b in members:
+            if st[b] == R_INCONSISTENT:
+                bad += 1
+        for b in members:
+            alt_slot[b] = -1
+        if bad < need:
+            return False
+    return True
+
+
+def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray | None = None):
+    """Apply the certainty rule to a proposal.
+
+    Parameters
+    ----------
+    pts : (n, 2) float64 blob centres (px)
+    slot_of : (n,) int64 proposed design id per blob (-1 none; ids unique)
+    lat : :class:`Lattice`
+    reason : (N,) int64, optional, updated in place with the reason code of every withdrawn id
+
+    Returns
+    -------
+    (n,) int64 certified ids (-1 where withdrawn).
+    """
+    N = len(lat.xy)
+    if reason is None:
+        reason = np.zeros(N, np.int64)
+    slot_of = consistent(pts, slot_of, lat, reason)
+    lab = np.flatnonzero(slot_of >= 0)
+    if len(lab) == 0:
+        return slot_of
+    blob_of = _blob_of(slot_of, N)
+    # patches: identified design neighbours (every such pair passed the consistency test)
+    comp_of = _components(slot_of, blob_of, lat.nbr)
+    comp = comp_of[lab]
+    n_comp = int(comp.max()) + 1
+    beyond = np.zeros(n_comp, np.int64)
+    if len(lat.beyond_slot):
+        hits = _beyond_hits(pts, _tree(pts), slot_of, blob_of, lat.xy, lat.nbr2, lat.pitch, lat.beyond_slot,
+                            lat.beyond_xy, GROW_GATE)
+        # a real outer row continues along the ring: the longest run of consecutive outer-ring
+        # slots (cyclic, canonical order) with a blob beyond them, per patch
+        outer = lat.outer_ring
+        hit_slot = np.zeros(N, bool)
+        hit_slot[lat.beyond_slot[hits > 0]] = True
+        h = hit_slot[outer]
+        if h.any() and not h.all():
+            start = int(np.argmin(h))                     # a slot without a hit: runs do not wrap
+            h = np.roll(h, -start)
+            o = np.roll(outer, -start)
+            run = 0
+            for k in range(len(h)):
+                run = run + 1 if h[k] else 0
+                if run >= BEYOND_HITS:
+                    b = blob_of[o[k]]
+                    if b >= 0:
+                        beyond[comp_of[b]] = max(beyond[comp_of[b]], run)
+        elif h.all():
+            beyond[:] = len(h)
+    limit = rotation_limit_deg(lat)
+    for c in range(n_comp):
+        members = lab[comp == c]
+        code = R_OK
+        if len(members) < MIN_PATCH:
+            code = R_FEW
+        elif abs(_rotation_deg(pts[members], lat.xy[slot_of[members]])) > limit:
+            code = R_ROTATION
+        elif beyond[c] >= BEYOND_HITS:
+            code = R_ANCHOR
+        elif not _anchored(pts, slot_of, members, lat):
+            code = R_ANCHOR
+        if code != R_OK:
+            reason[slot_of[members]] = code
+            slot_of[members] = -1
+    return slot_of
+
+
+def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, tree=None,
+         max_rounds: int = 64) -> np.ndarray:
+    """Extend certified patches slot by slot (see the module notes), re-testing after every round."""
+    N = len(lat.xy)
+    slot_of = slot_of.copy()
+    if len(pts) < 2:
+        return slot_of
+    tree = cKDTree(pts) if tree is None else tree
+    for _ in range(max_rounds):
+        blob_of = _blob_of(slot_of, N)
+        pred, scale = _predict_free(pts, blob_of, lat.xy, lat.nbr2, lat.pitch)
+        free = np.flatnonzero(scale > 0)
+        if len(free) == 0:
+            break
+        d, j = tree.query(pred[free], k=2)
+        d1, d2 = d[:, 0] / scale[free], d[:, 1] / scale[free]
+        near = d1 <= GROW_GATE
+        reason[free[~near]] = R_NO_BLOB
+        amb = near & ~((d2 >= 2 * d1) & (d2 - d1 >= AMBIGUITY_MARGIN))
+        reason[free[amb]] = R_AMBIGUOUS
+        take = near & ~amb & (slot_of[j[:, 0]] < 0)
+        cand = j[take, 0]
+        slots = free[take]
+        # a blob claimed by two free slots is ambiguous for both
+        u, cnt = np.unique(cand, return_counts=True)
+        dup = np.isin(cand, u[cnt > 1])
+        reason[slots[dup]] = R_AMBIGUOUS
+        cand, slots = cand[~dup], slots[~dup]
+        if len(cand) == 0:
+            break
+        trial = slot_of.copy()
+        trial[cand] = slots
+        trial = consistent(pts, trial, lat, reason)
+        if np.array_equal(trial >= 0, slot_of >= 0) and np.array_equal(trial, slot_of):
+            break
+        gained = np.count_nonzero(trial >= 0) - np.count_nonzero(slot_of >= 0)
+        slot_of = trial
+        if gained <= 0:
+            break
+    return slot_of
+
+
+def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n_best: int = 8) -> list:
+    """A proposal independent of ring peeling: the similarity transform (scale from the median
+    nearest-neighbour distance, rotation within the unambiguous range from the directions to the
+    nearest neighbours, translation putting one of the central blobs on one of the central slots)
+    under which the most design slots land on a blob. A lattice placed one pitch off fits the
+    interior as well as the truth (and a press bulges the pattern, so the boundary may not fit a
+    similarity at all): the ``n_best`` best distinct placements are returned, as proposals (an id
+    per blob, -1 none: every slot whose projection has exactly one blob within a third of a
+    separation and that lies within :data:`SEED_RADIUS` separations of the slot the placement was
+    anchored on, where a similarity still fits a bulged pattern), best first; growth and the
+    anchoring test decide among them."""
+    n = len(pts)
+    N = len(lat.xy)
+    out: list = []
+    if n < 4:
+        return out
+    tree = cKDTree(pts)
+    dn, jn = tree.query(pts, k=min(7, n))
+    pitch_px = float(np.median(dn[:, 1]))
+    if not pitch_px > 0:
+        return out
+    s0 = pitch_px / lat.pitch
+    # rotation, per hypothesis: the directions to a blob's nearest neighbours (k of them, k-fold
+    # symmetric about a lattice point) against those about the design slot it is put on
+    fold = 4 if lat.nbr.shape[1] == 8 and lat.translation_lattice else 6
+
+    def local_angle(p, at, nb):
+        v = p[nb] - p[at][:, None, :]
+        z = np.exp(1j * fold * np.arctan2(v[..., 1], v[..., 0])).mean(axis=1)
+        return np.degrees(np.angle(z)) / fold
+
+    # translations: central blobs on central slots
+    c_img = np.median(pts, axis=0)
+    b_idx = tree.query(c_img, k=min(7 if lat.translation_lattice else 19, n))[1]
+    c_des = lat.xy.mean(axis=0)
+    s_idx = np.argsort(np.hypot(*(lat.xy - c_des).T), kind="stable")[:19]
+    # score by a distance map of the blobs (one lookup per projected slot)
+    scale_map = 12.0 / pitch_px  # 12 raster pixels per separation
+    lo = pts.min(axis=0) - 2 * pitch_px
+    hi = pts.max(axis=0) + 2 * pitch_px
+    shape = (int((hi[1] - lo[1]) * scale_map) + 2, int((hi[0] - lo[0]) * scale_map) + 2)
+    if shape[0] * shape[1] > 4_000_000:
+        return out
+
+    raster = np.full(shape, 255, np.uint8)
+    rc = np.rint((pts - lo) * scale_map).astype(np.int64)
+    raster[rc[:, 1], rc[:, 0]] = 0
+    dist = cv2.distanceTransform(raster, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    placements: list = []
+    ang_b = local_angle(pts, b_idx, jn[b_idx][:, 1:fold + 1])
+    dtree = cKDTree(lat.xy)
+    ang_s = local_angle(lat.xy, s_idx, dtree.query(lat.xy[s_idx], k=fold + 1)[1][:, 1:])
+    period = 360.0 / fold
+    lim = lat.alpha_deg / 2
+    th = ang_b[:, None] - ang_s[None, :]
+    th = ((th + period / 2) % period - period / 2).ravel()
+    bb = np.repeat(b_idx, len(s_idx))
+    ss = np.tile(s_idx, len(b_idx))
+    anchor_px = pts[bb]
+    if not lat.translation_lattice:
+        # a circular pattern is fixed by its centre: the centre slot on a central blob, or on the
+        # apex of an equilateral triangle over two adjacent central blobs (a missing centre marker)
+        centre = int(np.argmin(np.hypot(*(lat.xy - c_des).T)))
+        apex = []
+        for b in b_idx:
+            for k in (1, 2):
+                q = pts[jn[b, k]] - pts[b]
+                for sgn in (1.0, -1.0):
+                    apex.append(pts[b] + 0.5 * q + sgn * (math.sqrt(3) / 2) * np.array([-q[1], q[0]]))
+        apex = np.array(apex)
+        apex = apex[tree.query(apex)[0] > 0.5 * pitch_px]
+        anchor_px = np.vstack([pts[b_idx], apex])
+        ring1 = tree.query_ball_point(anchor_px, 1.3 * pitch_px)
+        th = np.zeros(len(anchor_px))
+        scale_h = np.full(len(anchor_px), s0)
+        rad_des = float(np.mean(np.hypot(*(lat.xy[lat.layer_of == 1] - lat.xy[centre]).T)))
+        for i, lst in enumerate(ring1):
+            v = pts[[j for j in lst if np.hypot(*(pts[j] - anchor_px[i])) > 0.7 * pitch_px]] - anchor_px[i]
+            if len(v):
+                th[i] = np.degrees(np.angle(np.exp(1j * fold * np.arctan2(v[:, 1], v[:, 0])).mean())) / fold
+                # the first ring's radius: a press bulges the centre, the median spacing misses it
+                scale_h[i] = float(np.mean(np.hypot(*v.T))) / rad_des
+        ss = np.full(len(anchor_px), centre)
+    if lat.translation_lattice:
+        scale_h = np.full(len(anchor_px), s0)
+    cands = [th + k * period for k in range(-int(lim // period) - 1, int(lim // period) + 2)]
+    TH, AP, SS, SC = [], [], [], []
+    for c_ in cands:
+        keep = np.abs(c_) <= lim
+        TH.append(c_[keep])
+        AP.append(anchor_px[keep])
+        SS.append(ss[keep])
+        SC.append(scale_h[keep])
+    TH = np.concatenate(TH)[:max_hypotheses]
+    AP = np.concatenate(AP)[:max_hypotheses]
+    SS = np.concatenate(SS)[:max_hypotheses]
+    SC = np.concatenate(SC)[:max_hypotheses]
+    if len(TH):
+        t = np.radians(TH)
+        cos, sin = np.cos(t) * SC, np.sin(t) * SC
+        # (H, N, 2): slot xy rotated and scaled per hypothesis, then moved so slot SS lands on AP
+        rx = cos[:, None] * lat.xy[None, :, 0] - sin[:, None] * lat.xy[None, :, 1]
+        ry = sin[:, None] * lat.xy[None, :, 0] + cos[:, None] * lat.xy[None, :, 1]
+        proj_all = np.stack([rx, ry], axis=2)
+        off = AP - proj_all[np.arange(len(SS)), SS]
+        P = (proj_all + off[:, None, :] - lo) * scale_map  # (H, N, 2)
+        u = np.rint(P[..., 0]).astype(np.int64)
+        v = np.rint(P[..., 1]).astype(np.int64)
+        inside = (u >= 0) & (v >= 0) & (u < shape[1]) & (v < shape[0])
+        dd = np.full(u.shape, np.inf, np.float32)
+        dd[inside] = dist[v[inside], u[inside]]
+        # ranked on the slots that land on a blob (for a circular pattern only those within 3.5
+        # separations of the centre: its rings fit a similarity only near the centre when the
+        # skin bulges)
+        near = np.hypot(*(lat.xy[None, :, :] - lat.xy[SS][:, None, :]).transpose(2, 0, 1)) <= SEED_RADIUS * lat.pitch
+        hit = dd <= 0.3 * 12.0
+        if not lat.translation_lattice:
+            hit &= near
+        score = np.count_nonzero(hit, axis=1)
+        # many (blob, slot) pairs give the same placement: keep the best distinct ones
+        key = np.rint(off / (0.5 * pitch_px)).astype(np.int64)
+        key = key[:, 0] * 1_000_003 + key[:, 1] + np.rint(TH / 2.0).astype(np.int64) * 7_919
+        # ties (a shifted lattice fits as many slots) are broken by how near the placement puts
+        # the design's centre to the middle of the blobs
+        centre_off = np.hypot(*(proj_all.mean(axis=1) + off - c_img).T) / pitch_px
+        order = np.lexsort((centre_off, -score))
+        _, first = np.unique(key[order], return_index=True)
+        for h in order[np.sort(first)][:n_best]:
+            placements.append((int(score[h]), float(centre_off[h]), proj_all[h] + off[h], near[h]))
+    placements.sort(key=lambda x: (-x[0], x[1]))
+    for _, _, p, nr in placements[:n_best]:
+        d, j = tree.query(p, k=2)
+        ok = nr & (d[:, 0] <= pitch_px / 3) & (d[:, 1] >= 2 * d[:, 0])
+        u, cnt = np.unique(j[ok, 0], return_counts=True)
+        ok &= ~np.isin(j[:, 0], u[cnt > 1])
+        prop = np.full(n, -1, np.int64)
+        prop[j[ok, 0]] = np.flatnonzero(ok)
+        out.append(prop)
+    return out
