@@ -101,6 +101,13 @@ LOCAL_ONLY = 5
 #: a reading shifted by one row leaves the pattern's real outer row there (a side of 7-9 blobs in a
 #: row); spurious blobs land there scattered.
 BEYOND_HITS = 5
+#: Largest ratio of the singular values of the affine map a closed fan's neighbours may show when
+#: the fan is intact (:func:`_embedded`): its topology, not the map's shape, rules out seams and
+#: swaps there, so only a fold-free crowding limit is kept (measured up to 1.9 at the tip of a 5 mm
+#: press of the sharpest twin Gaussian on the 0.5 mm skin).
+FAN_MAX_STRETCH = 3.0
+#: Nearest blobs examined for the emptiness of a fan (a hexagonal fan has 6 vertices).
+FAN_QUERY = 24
 #: Smallest patch that is reported (a patch needs neighbourhoods of three to be tested at all).
 MIN_PATCH = 4
 
@@ -129,7 +136,9 @@ class Lattice:
     square) rather than rings of equally spaced markers (circular); ``alt_first`` (A, N) 0 where an
     alternative breaks the slot's neighbourhood on the design itself (tested first), else 1;
     ``beyond_slot`` (V,), ``beyond_xy`` (V, 2) lattice sites one step beyond the outer ring and the
-    outer-ring slot each is predicted from (empty for circular patterns).
+    outer-ring slot each is predicted from (empty for circular patterns); ``fan`` (N, K) the design
+    neighbours of ``nbr`` in counter-clockwise order about each slot they surround (a closed fan of
+    triangles), -1 padded; a row of -1 for slots they do not surround (the outer ring).
     """
 
     xy: np.ndarray
@@ -145,6 +154,7 @@ class Lattice:
     beyond_slot: np.ndarray
     beyond_xy: np.ndarray
     outer_ring: np.ndarray
+    fan: np.ndarray
 
 
 _CACHE: dict = {}
@@ -235,6 +245,18 @@ def lattice_of(design) -> Lattice:
                     v_xy.append(q)
     v_slot = np.asarray(v_slot, np.int64)
     v_xy = np.asarray(v_xy, np.float64).reshape(-1, 2)
+    # closed fans: the immediate neighbours in counter-clockwise order, kept where they surround the
+    # slot (every triangle of the fan turns counter-clockwise and the fan turns once)
+    fan = np.full(nbr.shape, -1, np.int64)
+    for s_ in range(n):
+        nb_ = nbr[s_][nbr[s_] >= 0]
+        if len(nb_) < 3:
+            continue
+        a_ = np.arctan2(xy[nb_, 1] - xy[s_, 1], xy[nb_, 0] - xy[s_, 0])
+        cyc = nb_[np.argsort(a_, kind="stable")]
+        fan[s_, :len(cyc)] = cyc
+        if not _fan_turns_once(xy, s_, fan[s_]):
+            fan[s_] = -1
     # per alternative: 0 for the slots whose neighbourhoods it breaks on the design itself, else 1
     alt = np.array(maps, np.int64).reshape(-1, n)
     first = np.ones(alt.shape, np.int64)
@@ -243,11 +265,11 @@ def lattice_of(design) -> Lattice:
         g = alt[a].copy()
         u, cnt = np.unique(g[g >= 0], return_counts=True)
         g[np.isin(g, u[cnt > 1])] = -1
-        st = _consistency(xy, dtree, g, _blob_of(g, n), xy, nbr, nbr2, pitch, GATE, np.arange(n), 0)
+        st = _consistency(xy, dtree, g, _blob_of(g, n), xy, nbr, nbr2, fan, pitch, GATE, np.arange(n), 0)
         first[a, st == R_INCONSISTENT] = 0
     outer_ring = np.flatnonzero(layers == layers.max()).astype(np.int64)
     lat = Lattice(xy, pitch, nbr, nbr2, alpha, alt, tuple(names),
-                  layers.astype(np.int64), lattice, first, v_slot, v_xy, outer_ring)
+                  layers.astype(np.int64), lattice, first, v_slot, v_xy, outer_ring, fan)
     _CACHE[key] = lat
     return lat
 
@@ -286,13 +308,19 @@ def _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov):
 
 @numba.njit(cache=True)
 def _fit(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch):
+    """:func:`_fit_map` with the stretch limit :data:`MAX_STRETCH`."""
+    return _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, MAX_STRETCH)
+
+
+@numba.njit(cache=True)
+def _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, max_stretch):
     """Affine map design -> image from the points summed in ``acc`` (:func:`_fit_sums`) without
     point ``skip`` (-1: none).
 
     Returns (ok, mean design x, y, mean image u, v, L00, L01, L10, L11), means relative to the
     origins of :func:`_fit_sums`. ``ok`` is 1 for a usable map, 0 when fewer than three points
     remain or they are (nearly) collinear, -1 when the map mirrors or stretches more than
-    MAX_STRETCH (no smooth skin does that).
+    ``max_stretch`` (no smooth skin does that).
     """
     c = acc.copy()
     if skip >= 0:
@@ -339,22 +367,138 @@ def _fit(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch):
     fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
     s_max = math.sqrt(max(fro / 2 + math.sqrt(max(fro * fro / 4 - dl * dl, 0.0)), 0.0))
     s_min = dl / s_max
-    if s_max > MAX_STRETCH * s_min:
+    if s_max > max_stretch * s_min:
         return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     return 1, mx, my, mu, mv, l00, l01, l10, l11
 
 
 @numba.njit(cache=True)
-def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, pitch, gate, order, stop_after):
+def _fan_turns_once(p, c, ring):
+    """Do the points ``p[ring]`` (-1 padded) surround ``p[c]`` as a closed fan: every triangle
+    (c, ring[i], ring[i+1]) counter-clockwise and the angles at ``c`` summing to one turn?"""
+    m = 0
+    while m < len(ring) and ring[m] >= 0:
+        m += 1
+    if m < 3:
+        return False
+    total = 0.0
+    for i in range(m):
+        a = ring[i]
+        b = ring[(i + 1) % m]
+        ax = p[a, 0] - p[c, 0]
+        ay = p[a, 1] - p[c, 1]
+        bx = p[b, 0] - p[c, 0]
+        by = p[b, 1] - p[c, 1]
+        cr = ax * by - ay * bx
+        if cr <= 0.0:
+            return False
+        total += math.atan2(cr, ax * bx + ay * by)
+    return abs(total - 2.0 * math.pi) < 1e-6
+
+
+@numba.njit(cache=True)
+def _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d2):
+    """Is blob ``b`` the vertex of an intact image of its slot's design fan (deformed-ring
+    certification)? Every design neighbour of the closed fan ``fan[s]`` is identified; their blobs
+    surround ``b`` counter-clockwise in the design's order, turning once (no fold, no swap, no
+    mirror); no other blob lies inside the fan; and ``b`` lies within ``gate`` local pitches of the
+    position the affine map of its neighbours predicts (stretch up to :data:`FAN_MAX_STRETCH`). A
+    smooth deformation keeps all of this however strongly it crowds or shears the fan, so the
+    complete rings of a pressed skin are certified where the leave-one-out fits of
+    :func:`_consistency` (which must extrapolate across a strongly curved neighbourhood) fail.
+    ``ring``, ``near``, ``near_d2``: work arrays (fan width, and >= :data:`FAN_QUERY`)."""
+    K = fan.shape[1]
+    if fan[s, 0] < 0:
+        return False
+    m = 0
+    for k in range(K):
+        j = fan[s, k]
+        if j < 0:
+            break
+        if blob_of[j] < 0:
+            return False
+        ring[m] = blob_of[j]
+        m += 1
+    for k in range(m, len(ring)):
+        ring[k] = -1
+    if not _fan_turns_once(pts, b, ring):
+        return False
+    # the neighbours' affine map predicts b
+    acc = _fit_sums(xy, pts, fan[s], ring, m, xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1])
+    ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit_map(xy, pts, fan[s], ring, acc, -1, xy[s, 0], xy[s, 1],
+                                                      pts[b, 0], pts[b, 1], pitch, FAN_MAX_STRETCH)
+    if ok <= 0:
+        return False
+    pu = pts[b, 0] + mu - l00 * mx - l01 * my
+    pv = pts[b, 1] + mv - l10 * mx - l11 * my
+    scale = math.sqrt(l00 * l11 - l01 * l10) * pitch
+    if math.hypot(pts[b, 0] - pu, pts[b, 1] - pv) > gate * scale:
+        return False
+    # no other blob inside the fan
+    r2 = 0.0
+    for i in range(m):
+        dx = pts[ring[i], 0] - pts[b, 0]
+        dy = pts[ring[i], 1] - pts[b, 1]
+        r2 = max(r2, dx * dx + dy * dy)
+    # usually the fan's own blobs are the nearest ones, and every other blob is farther than all of
+    # them (so outside the fan); otherwise the nearer blobs are tested against the fan's triangles
+    kq = min(len(pts), m + 1)
+    kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
+    if kq < len(pts) and near_d2[kq - 1] <= r2:
+        own = 0
+        for q in range(kq):
+            if near[q] == b:
+                own += 1
+            else:
+                for i in range(m):
+                    if ring[i] == near[q]:
+                        own += 1
+                        break
+        if own == kq and kq == m + 1:
+            return True
+        kq = min(len(pts), len(near))
+        kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
+        if kq == len(near) and near_d2[kq - 1] < r2:
+            return False                                  # too many blobs to tell
+    for q in range(kq):
+        j = near[q]
+        if near_d2[q] >= r2:
+            break
+        if j == b:
+            continue
+        member = False
+        for i in range(m):
+            if ring[i] == j:
+                member = True
+                break
+        if member:
+            continue
+        px = pts[j, 0]
+        py = pts[j, 1]
+        for i in range(m):
+            a = ring[i]
+            c = ring[(i + 1) % m]
+            # inside (or on) triangle (b, a, c), which is counter-clockwise
+            if ((pts[a, 0] - pts[b, 0]) * (py - pts[b, 1]) - (pts[a, 1] - pts[b, 1]) * (px - pts[b, 0]) >= 0.0
+                    and (pts[c, 0] - pts[a, 0]) * (py - pts[a, 1]) - (pts[c, 1] - pts[a, 1]) * (px - pts[a, 0]) >= 0.0
+                    and (pts[b, 0] - pts[c, 0]) * (py - pts[c, 1]) - (pts[b, 1] - pts[c, 1]) * (px - pts[c, 0]) >= 0.0):
+                return False
+    return True
+
+
+@numba.njit(cache=True)
+def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, fan, pitch, gate, order, stop_after):
     """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
 
     The neighbourhood of a blob's slot is the identified slots of ``nbr2``; the blob itself and
     each identified immediate neighbour (``nbr``) must lie within ``gate`` local pitches of the
     position the affine map fitted to the rest of the neighbourhood predicts for it; and the blob
     must be the unambiguous nearest blob to its own prediction (R_AMBIGUOUS otherwise: at least
-    twice as near as the second-nearest and 0.15 pitches nearer). ``tree``: :func:`kd_build` of
-    ``pts``. Blobs are visited in ``order``; with ``stop_after`` > 0 the visit stops once that many
-    are inconsistent (the anchoring test needs only that much evidence)."""
+    twice as near as the second-nearest and 0.15 pitches nearer). A blob failing these is still
+    consistent when it is the vertex of an intact image of its closed design fan
+    (:func:`_embedded`). ``tree``: :func:`kd_build` of ``pts``. Blobs are visited in ``order``;
+    with ``stop_after`` > 0 the visit stops once that many are inconsistent (the anchoring test
+    needs only that much evidence)."""
     n = len(slot_of)
     status = np.zeros(n, np.int64)
     K = nbr2.shape[1]
@@ -364,6 +508,9 @@ def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, pitch, gate, order,
     immediate = np.zeros(K + 1, np.bool_)
     two = np.empty(2, np.int64)
     two_d2 = np.empty(2)
+    ring = np.empty(fan.shape[1], np.int64)
+    near = np.empty(FAN_QUERY, np.int64)
+    near_d2 = np.empty(FAN_QUERY)
     n_bad = 0
     for b in order:
         if stop_after > 0 and n_bad >= stop_after:
@@ -371,70 +518,74 @@ def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, pitch, gate, order,
         s = slot_of[b]
         if s < 0:
             continue
-        slots[0] = s
-        blobs[0] = b
-        immediate[0] = True
-        m = 1
-        n_imm = 0
-        for k in range(K):
-            j = nbr2[s, k]
-            if j < 0:
-                break
-            if blob_of[j] >= 0:
-                slots[m] = j
-                blobs[m] = blob_of[j]
-                imm = False
-                for k1 in range(K1):
-                    if nbr[s, k1] == j:
-                        imm = True
-                        break
-                immediate[m] = imm
-                if imm:
-                    n_imm += 1
-                m += 1
-        if m < 4 or n_imm < MIN_IMMEDIATE:
-            status[b] = R_FEW
-            continue
-        if n_imm >= LOCAL_ONLY:
-            # enough immediate neighbours (they come first: nbr2 is sorted by distance): fit only
-            # the closed immediate neighbourhood, where a strongly curved press is still affine
-            m = 1 + n_imm
-        ok0 = True
-        ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
-        acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov)
-        for q in range(m):
-            if not immediate[q]:
-                continue
-            ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, q, ox, oy, ou, ov, pitch)
-            if ok < 0:
-                status[b] = R_INCONSISTENT
-                n_bad += 1
-                break
-            if ok == 0:
-                if q == 0:
-                    ok0 = False
-                    break
-                continue
-            dx = xy[slots[q], 0] - ox - mx
-            dy = xy[slots[q], 1] - oy - my
-            pu = ou + mu + l00 * dx + l01 * dy
-            pv = ov + mv + l10 * dx + l11 * dy
-            scale = math.sqrt(l00 * l11 - l01 * l10) * pitch
-            r = math.hypot(pts[blobs[q], 0] - pu, pts[blobs[q], 1] - pv) / scale
-            if r > gate:
-                status[b] = R_INCONSISTENT
-                n_bad += 1
-                break
-            if q == 0 and len(pts) >= 2:
-                kd_query(pts, tree, pu, pv, 2, two, two_d2)
-                d1 = math.sqrt(two_d2[0]) / scale
-                d2 = math.sqrt(two_d2[1]) / scale
-                if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
-                    status[b] = R_AMBIGUOUS
-                    break
-        if not ok0:
-            status[b] = R_FEW
+        # an intact fan is the cheaper test, and the one a strongly pressed neighbourhood passes
+        st = 0
+        if not _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d2):
+            st = _loo_status(pts, tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blobs, immediate, two,
+                             two_d2, K, K1)
+        status[b] = st
+        if st == R_INCONSISTENT:
+            n_bad += 1
     return status
+
+
+@numba.njit(cache=True)
+def _loo_status(pts, tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blobs, immediate, two, two_d2, K, K1):
+    """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status."""
+    slots[0] = s
+    blobs[0] = b
+    immediate[0] = True
+    m = 1
+    n_imm = 0
+    for k in range(K):
+        j = nbr2[s, k]
+        if j < 0:
+            break
+        if blob_of[j] >= 0:
+            slots[m] = j
+            blobs[m] = blob_of[j]
+            imm = False
+            for k1 in range(K1):
+                if nbr[s, k1] == j:
+                    imm = True
+                    break
+            immediate[m] = imm
+            if imm:
+                n_imm += 1
+            m += 1
+    if m < 4 or n_imm < MIN_IMMEDIATE:
+        return R_FEW
+    if n_imm >= LOCAL_ONLY:
+        # enough immediate neighbours (they come first: nbr2 is sorted by distance): fit only
+        # the closed immediate neighbourhood, where a strongly curved press is still affine
+        m = 1 + n_imm
+    ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
+    acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov)
+    for q in range(m):
+        if not immediate[q]:
+            continue
+        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, q, ox, oy, ou, ov, pitch)
+        if ok < 0:
+            return R_INCONSISTENT
+        if ok == 0:
+            if q == 0:
+                return R_FEW
+            continue
+        dx = xy[slots[q], 0] - ox - mx
+        dy = xy[slots[q], 1] - oy - my
+        pu = ou + mu + l00 * dx + l01 * dy
+        pv = ov + mv + l10 * dx + l11 * dy
+        scale = math.sqrt(l00 * l11 - l01 * l10) * pitch
+        r = math.hypot(pts[blobs[q], 0] - pu, pts[blobs[q], 1] - pv) / scale
+        if r > gate:
+            return R_INCONSISTENT
+        if q == 0 and len(pts) >= 2:
+            kd_query(pts, tree, pu, pv, 2, two, two_d2)
+            d1 = math.sqrt(two_d2[0]) / scale
+            d2 = math.sqrt(two_d2[1]) / scale
+            if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
+                return R_AMBIGUOUS
+    return 0
 
 
 @numba.njit(cache=True)
@@ -501,7 +652,7 @@ def consistent(pts, slot_of, lat, reason):
     slot_of = slot_of.copy()
     for _ in range(len(lat.xy)):
         st = _consistency(pts, _tree(pts), slot_of, _blob_of(slot_of, len(lat.xy)), lat.xy, lat.nbr, lat.nbr2,
-                          lat.pitch, GATE, np.arange(len(slot_of)), 0)
+                          lat.fan, lat.pitch, GATE, np.arange(len(slot_of)), 0)
         bad = np.flatnonzero(st > 0)
         if len(bad) == 0:
             break
@@ -715,11 +866,11 @@ def _anchored(pts, slot_of, members, lat) -> bool:
     if len(lat.alt) == 0:
         return True
     return _alternatives_excluded(pts, _tree(pts), slot_of, members, lat.alt, lat.alt_first, lat.xy, lat.nbr,
-                                  lat.nbr2, lat.pitch, GATE, ANCHOR_EVIDENCE)
+                                  lat.nbr2, lat.fan, lat.pitch, GATE, ANCHOR_EVIDENCE)
 
 
 @numba.njit(cache=True)
-def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr, nbr2, pitch, gate, evidence):
+def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr, nbr2, fan, pitch, gate, evidence):
     """Every alternative reading ``alt[a]`` of the patch ``members`` is excluded by ``evidence``
     markers: pushed outside the design (its map gives -1; only markers with EVIDENCE_IMMEDIATE
     identified immediate neighbours count) or inconsistent under it. A reading that
@@ -774,7 +925,7 @@ def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr,
                     order[k] = b
                     k += 1
         need = evidence - outside
-        st = _consistency(pts, tree, alt_slot, blob_of, xy, nbr, nbr2, pitch, gate, order, need)
+        st = _consistency(pts, tree, alt_slot, blob_of, xy, nbr, nbr2, fan, pitch, gate, order, need)
         bad = 0
         for b in members:
             if st[b] == R_INCONSISTENT:
