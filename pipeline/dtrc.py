@@ -48,7 +48,8 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from pipeline.delaunay import delaunay_certified
 from pipeline.design import SensorDesign
-from pipeline.identity import R_NO_BLOB, REASONS, certify, consistent, grow, lattice_of, register_seed
+from pipeline.identity import (R_NO_BLOB, REASONS, certify, certify_whole, consistent, grow, lattice_of,
+                               register_seed, use_triangulation)
 from pipeline.kdtree import kd_build, kd_query
 from pipeline.types import Blobs, MarkerMatches
 
@@ -851,6 +852,7 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         return RingCoding(ids, np.full(n, -1, np.int64), (), expected, np.arange(len(xy_d), dtype=np.int64),
                           messages=(f"only {n} blobs",), unmatched_reasons=(f"only {n} blobs detected",) * len(xy_d))
     nn, tri = _nn_and_mesh(pts)
+    use_triangulation(pts, None if tri is None else tri[0])
     med_nn = _median(nn)
     active = nn <= OUTLIER_NN_FACTOR * med_nn
     n_dropped = n - int(np.count_nonzero(active))
@@ -902,8 +904,10 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         removed = _verify_and_grow(pts, ids, active, xy_d, design.pattern.separation_mm, n_layers + 2)
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
-    prior = None if previous is None else carry_ids(np.asarray(previous[0], np.float64).reshape(-1, 2),
-                                                    np.asarray(previous[1], np.int64), pts)
+    prior = None
+    if previous is not None:
+        def prior():
+            return carry_ids(np.asarray(previous[0], np.float64).reshape(-1, 2), np.asarray(previous[1], np.int64), pts)
     ids, reason = _certain_ids(pts, ids, design, failed, msgs, prior)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
@@ -928,11 +932,12 @@ SEED_BELOW = 0.9
 
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
-                 msgs: list[str], prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 msgs: list[str], prior=None) -> tuple[np.ndarray, np.ndarray]:
     """The certainty rule (:mod:`pipeline.identity`) applied to the ring-coding proposal and, when
-    given, to ``prior`` (ids carried from the previous frame, :func:`carry_ids`), each extended by
-    growth; when that leaves markers unidentified, also to the placements of a lattice registration
-    independent of ring peeling. Returns (certified id per blob, reason code per design id)."""
+    given, to ``prior()`` (ids carried from the previous frame, :func:`carry_ids`; called only when
+    the ring-coding proposal is not certified whole), each extended by growth; when that leaves
+    markers unidentified, also to the placements of a lattice registration independent of ring
+    peeling. Returns (certified id per blob, reason code per design id)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)
     reason = np.full(n_slots, R_NO_BLOB, np.int64)
@@ -940,7 +945,12 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
         return np.full(len(pts), -1, np.int64), reason
     if int((proposal >= 0).sum()) == n_slots:
         # ring coding identified every marker (the common case, pressed frames included): the
-        # certainty rule need only confirm it
+        # certainty rule need only confirm it, in one compiled pass when there is no other blob
+        if certify_whole(pts, proposal, lat):
+            if defects:
+                msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
+            reason[:] = 0
+            return proposal.copy(), reason
         ids = certify(pts, proposal, lat, reason)
         if int((ids >= 0).sum()) == n_slots:
             if defects:
@@ -958,8 +968,10 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
 
     enough = SEED_BELOW * min(n_slots, len(pts))
     cands = [run(proposal)]
-    if prior is not None and (prior >= 0).any():
-        cands.append(run(prior))
+    if prior is not None:
+        carried = prior()
+        if (carried >= 0).any():
+            cands.append(run(carried))
     if max(map(count, cands)) < enough:
         for p in register_seed(pts, lat):
             cands.append(run(p))

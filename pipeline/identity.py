@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 from pipeline.kdtree import kd_build, kd_query
 
 __all__ = ["GATE", "GROW_GATE", "ANCHOR_EVIDENCE", "MAX_STRETCH", "ROTATION_MARGIN_DEG", "REASONS",
-           "lattice_of", "consistent", "certify", "grow", "register_seed", "rotation_limit_deg"]
+           "lattice_of", "consistent", "certify", "certify_whole", "grow", "register_seed", "rotation_limit_deg", "use_triangulation"]
 
 #: Leave-one-out gate, in local separations. A correct marker's prediction error is its own centre
 #: error plus the fit's (detector noise ~0.01, jitter tested up to 0.3); a marker carrying its
@@ -106,6 +106,9 @@ BEYOND_HITS = 5
 #: swaps there, so only a fold-free crowding limit is kept (measured up to 1.9 at the tip of a 5 mm
 #: press of the sharpest twin Gaussian on the 0.5 mm skin).
 FAN_MAX_STRETCH = 3.0
+#: A slot has a closed fan only if its design neighbours leave no angular gap wider than this about
+#: it (hexagonal 60, square 45 deg inside the pattern; an outer-ring slot leaves >= 180 deg).
+FAN_MAX_GAP_DEG = 135.0
 #: Nearest blobs examined for the emptiness of a fan (a hexagonal fan has 6 vertices).
 FAN_QUERY = 24
 #: Smallest patch that is reported (a patch needs neighbourhoods of three to be tested at all).
@@ -113,6 +116,8 @@ MIN_PATCH = 4
 
 # per-slot reason codes (0 = identified)
 R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION = range(7)
+#: internal status: the test needs the k-d tree of the blobs (built only when some blob needs it)
+_NEED_TREE = 99
 REASONS = {
     R_NO_BLOB: "no blob at its predicted position",
     R_AMBIGUOUS: "two blobs near its predicted position",
@@ -137,8 +142,9 @@ class Lattice:
     alternative breaks the slot's neighbourhood on the design itself (tested first), else 1;
     ``beyond_slot`` (V,), ``beyond_xy`` (V, 2) lattice sites one step beyond the outer ring and the
     outer-ring slot each is predicted from (empty for circular patterns); ``fan`` (N, K) the design
-    neighbours of ``nbr`` in counter-clockwise order about each slot they surround (a closed fan of
-    triangles), -1 padded; a row of -1 for slots they do not surround (the outer ring).
+    neighbours of ``nbr`` in counter-clockwise order about each slot, -1 padded: a closed fan of
+    triangles where they surround the slot (``fan_closed``), else (the outer ring) an open one
+    starting after the widest gap; a row of -1 where they form neither.
     """
 
     xy: np.ndarray
@@ -155,6 +161,7 @@ class Lattice:
     beyond_xy: np.ndarray
     outer_ring: np.ndarray
     fan: np.ndarray
+    fan_closed: np.ndarray
 
 
 _CACHE: dict = {}
@@ -245,18 +252,39 @@ def lattice_of(design) -> Lattice:
                     v_xy.append(q)
     v_slot = np.asarray(v_slot, np.int64)
     v_xy = np.asarray(v_xy, np.float64).reshape(-1, 2)
-    # closed fans: the immediate neighbours in counter-clockwise order, kept where they surround the
-    # slot (every triangle of the fan turns counter-clockwise and the fan turns once)
+    # fans: the immediate neighbours in counter-clockwise order, closed where they surround the
+    # slot (every triangle of the fan turns counter-clockwise and the fan turns once). On circular
+    # patterns the immediate neighbours are those of the design's Delaunay triangulation (the rings'
+    # spacings differ, so a 1.5-separation disc holds 6-8 markers, some behind others), which the
+    # image's Delaunay triangulation then usually reproduces (see _embedded)
     fan = np.full(nbr.shape, -1, np.int64)
+    fan_closed = np.zeros(n, bool)
+    link = None
+    if not lattice:
+        from scipy.spatial import Delaunay
+
+        ptr_, idx_ = Delaunay(xy).vertex_neighbor_vertices
+        link = [idx_[ptr_[i]:ptr_[i + 1]] for i in range(n)]
     for s_ in range(n):
-        nb_ = nbr[s_][nbr[s_] >= 0]
+        nb_ = nbr[s_][nbr[s_] >= 0] if link is None else np.intersect1d(link[s_], nbr[s_][nbr[s_] >= 0])
         if len(nb_) < 3:
             continue
         a_ = np.arctan2(xy[nb_, 1] - xy[s_, 1], xy[nb_, 0] - xy[s_, 0])
-        cyc = nb_[np.argsort(a_, kind="stable")]
-        fan[s_, :len(cyc)] = cyc
-        if not _fan_turns_once(xy, s_, fan[s_]):
-            fan[s_] = -1
+        o_ = np.argsort(a_, kind="stable")
+        cyc, a_ = nb_[o_], a_[o_]
+        gaps = np.diff(np.concatenate([a_, [a_[0] + 2 * np.pi]]))
+        if gaps.max() <= np.radians(FAN_MAX_GAP_DEG):
+            if _fan_turns_once(xy, s_, cyc, len(cyc)):
+                fan[s_, :len(cyc)] = cyc
+                fan_closed[s_] = True
+            continue
+        # open fan (the outer ring): start after the widest gap; every other step must turn
+        # counter-clockwise by less than the gap limit
+        k0 = (int(np.argmax(gaps)) + 1) % len(cyc)
+        cyc = np.roll(cyc, -k0)
+        inner_gaps = np.delete(np.roll(gaps, -k0), -1)
+        if inner_gaps.size and inner_gaps.max() <= np.radians(FAN_MAX_GAP_DEG) and inner_gaps.min() > 0:
+            fan[s_, :len(cyc)] = cyc
     # per alternative: 0 for the slots whose neighbourhoods it breaks on the design itself, else 1
     alt = np.array(maps, np.int64).reshape(-1, n)
     first = np.ones(alt.shape, np.int64)
@@ -265,11 +293,12 @@ def lattice_of(design) -> Lattice:
         g = alt[a].copy()
         u, cnt = np.unique(g[g >= 0], return_counts=True)
         g[np.isin(g, u[cnt > 1])] = -1
-        st = _consistency(xy, dtree, g, _blob_of(g, n), xy, nbr, nbr2, fan, pitch, GATE, np.arange(n), 0)
+        st = _consistency(xy, dtree, True, np.zeros(n + 1, np.int64), np.zeros(0, np.int64), g, _blob_of(g, n), xy,
+                          nbr, nbr2, fan, fan_closed, pitch, GATE, np.arange(n), 0)
         first[a, st == R_INCONSISTENT] = 0
     outer_ring = np.flatnonzero(layers == layers.max()).astype(np.int64)
     lat = Lattice(xy, pitch, nbr, nbr2, alpha, alt, tuple(names),
-                  layers.astype(np.int64), lattice, first, v_slot, v_xy, outer_ring, fan)
+                  layers.astype(np.int64), lattice, first, v_slot, v_xy, outer_ring, fan, fan_closed)
     _CACHE[key] = lat
     return lat
 
@@ -373,31 +402,31 @@ def _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, max_stretc
 
 
 @numba.njit(cache=True)
-def _fan_turns_once(p, c, ring):
-    """Do the points ``p[ring]`` (-1 padded) surround ``p[c]`` as a closed fan: every triangle
-    (c, ring[i], ring[i+1]) counter-clockwise and the angles at ``c`` summing to one turn?"""
-    m = 0
-    while m < len(ring) and ring[m] >= 0:
-        m += 1
+def _fan_turns_once(p, c, ring, m):
+    """Do the points ``p[ring[:m]]`` surround ``p[c]`` as a closed fan: every triangle
+    (c, ring[i], ring[i+1]) counter-clockwise and the fan turning once about ``c``? (With every step
+    counter-clockwise, the turns are the crossings of the ray from ``c`` along +x.)"""
     if m < 3:
         return False
-    total = 0.0
+    turns = 0
+    cx = p[c, 0]
+    cy = p[c, 1]
     for i in range(m):
         a = ring[i]
-        b = ring[(i + 1) % m]
-        ax = p[a, 0] - p[c, 0]
-        ay = p[a, 1] - p[c, 1]
-        bx = p[b, 0] - p[c, 0]
-        by = p[b, 1] - p[c, 1]
-        cr = ax * by - ay * bx
-        if cr <= 0.0:
+        b = ring[i + 1] if i + 1 < m else ring[0]
+        ax = p[a, 0] - cx
+        ay = p[a, 1] - cy
+        bx = p[b, 0] - cx
+        by = p[b, 1] - cy
+        if ax * by - ay * bx <= 0.0:
             return False
-        total += math.atan2(cr, ax * bx + ay * by)
-    return abs(total - 2.0 * math.pi) < 1e-6
+        if ay < 0.0 <= by:                    # upward, and (counter-clockwise step) at x > 0
+            turns += 1
+    return turns == 1
 
 
 @numba.njit(cache=True)
-def _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d2):
+def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near, near_d2):
     """Is blob ``b`` the vertex of an intact image of its slot's design fan (deformed-ring
     certification)? Every design neighbour of the closed fan ``fan[s]`` is identified; their blobs
     surround ``b`` counter-clockwise in the design's order, turning once (no fold, no swap, no
@@ -406,45 +435,114 @@ def _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d
     smooth deformation keeps all of this however strongly it crowds or shears the fan, so the
     complete rings of a pressed skin are certified where the leave-one-out fits of
     :func:`_consistency` (which must extrapolate across a strongly curved neighbourhood) fail.
-    ``ring``, ``near``, ``near_d2``: work arrays (fan width, and >= :data:`FAN_QUERY`)."""
+
+    An open fan (a slot of the outer ring, ``closed[s]`` False) must turn counter-clockwise at every
+    step but the widest and be exactly ``b``'s Delaunay neighbourhood (``adj_ptr``, ``adj_idx``:
+    :func:`use_triangulation`; nothing else touches ``b``, outside the pattern included).
+
+    Returns 1 (intact), 0 (not), or :data:`_NEED_TREE` when only the blob search of the emptiness
+    test is left and ``has_tree`` is False. ``ring``, ``near``, ``near_d2``: work arrays (fan width,
+    and >= :data:`FAN_QUERY`)."""
     K = fan.shape[1]
     if fan[s, 0] < 0:
-        return False
+        return 0
     m = 0
     for k in range(K):
         j = fan[s, k]
         if j < 0:
             break
         if blob_of[j] < 0:
-            return False
+            return 0
         ring[m] = blob_of[j]
         m += 1
-    for k in range(m, len(ring)):
-        ring[k] = -1
-    if not _fan_turns_once(pts, b, ring):
-        return False
-    # the neighbours' affine map predicts b
-    acc = _fit_sums(xy, pts, fan[s], ring, m, xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1])
-    ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit_map(xy, pts, fan[s], ring, acc, -1, xy[s, 0], xy[s, 1],
-                                                      pts[b, 0], pts[b, 1], pitch, FAN_MAX_STRETCH)
-    if ok <= 0:
-        return False
-    pu = pts[b, 0] + mu - l00 * mx - l01 * my
-    pv = pts[b, 1] + mv - l10 * mx - l11 * my
-    scale = math.sqrt(l00 * l11 - l01 * l10) * pitch
-    if math.hypot(pts[b, 0] - pu, pts[b, 1] - pv) > gate * scale:
-        return False
-    # no other blob inside the fan
+    if closed[s]:
+        if not _fan_turns_once(pts, b, ring, m):
+            return 0
+    else:
+        total = 0.0
+        for i in range(m - 1):
+            ax = pts[ring[i], 0] - pts[b, 0]
+            ay = pts[ring[i], 1] - pts[b, 1]
+            bx = pts[ring[i + 1], 0] - pts[b, 0]
+            by = pts[ring[i + 1], 1] - pts[b, 1]
+            cr = ax * by - ay * bx
+            if cr <= 0.0:
+                return 0
+            total += math.atan2(cr, ax * bx + ay * by)
+        if total >= 2.0 * math.pi - math.radians(FAN_MAX_GAP_DEG):
+            return 0
+    # the neighbours' affine map (least squares, design relative to slot s, image relative to b)
+    # predicts b
+    sx = sy = su = sv = sxx = sxy = syy = sux = suy = svx = svy = 0.0
+    for i in range(m):
+        x = xy[fan[s, i], 0] - xy[s, 0]
+        y = xy[fan[s, i], 1] - xy[s, 1]
+        u = pts[ring[i], 0] - pts[b, 0]
+        v = pts[ring[i], 1] - pts[b, 1]
+        sx += x
+        sy += y
+        su += u
+        sv += v
+        sxx += x * x
+        sxy += x * y
+        syy += y * y
+        sux += u * x
+        suy += u * y
+        svx += v * x
+        svy += v * y
+    mx, my, mu, mv = sx / m, sy / m, su / m, sv / m
+    sxx -= m * mx * mx
+    sxy -= m * mx * my
+    syy -= m * my * my
+    cux = sux - m * mu * mx
+    cuy = suy - m * mu * my
+    cvx = svx - m * mv * mx
+    cvy = svy - m * mv * my
+    det = sxx * syy - sxy * sxy
+    if not det > 1e-12 * pitch ** 4:
+        return 0
+    l00 = (cux * syy - cuy * sxy) / det
+    l01 = (cuy * sxx - cux * sxy) / det
+    l10 = (cvx * syy - cvy * sxy) / det
+    l11 = (cvy * sxx - cvx * sxy) / det
+    dl = l00 * l11 - l01 * l10
+    if dl <= 0.0:
+        return 0
+    fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
+    s_max = math.sqrt(max(fro / 2 + math.sqrt(max(fro * fro / 4 - dl * dl, 0.0)), 0.0))
+    if s_max * s_max > FAN_MAX_STRETCH * dl:
+        return 0
+    # prediction at the slot (design offset 0) relative to b
+    pu = mu - l00 * mx - l01 * my
+    pv = mv - l10 * mx - l11 * my
+    if pu * pu + pv * pv > gate * gate * dl * pitch * pitch:
+        return 0
+    # no other blob inside the fan. When b's Delaunay neighbours are exactly the fan's blobs, the
+    # fan's triangles are Delaunay triangles (the fan is in angular order about b), hence empty.
+    if adj_ptr[b + 1] - adj_ptr[b] == m:
+        hit = 0
+        for q in range(adj_ptr[b], adj_ptr[b + 1]):
+            for i in range(m):
+                if ring[i] == adj_idx[q]:
+                    hit += 1
+                    break
+        if hit == m:
+            return 1
+    if not closed[s]:
+        return 0
+    if not has_tree:
+        return _NEED_TREE
+    # Otherwise: usually the fan's own blobs are still the nearest ones, so every other blob is
+    # farther than all of them (outside the fan); else the nearer blobs are tested against the
+    # fan's triangles
     r2 = 0.0
     for i in range(m):
         dx = pts[ring[i], 0] - pts[b, 0]
         dy = pts[ring[i], 1] - pts[b, 1]
         r2 = max(r2, dx * dx + dy * dy)
-    # usually the fan's own blobs are the nearest ones, and every other blob is farther than all of
-    # them (so outside the fan); otherwise the nearer blobs are tested against the fan's triangles
     kq = min(len(pts), m + 1)
     kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
-    if kq < len(pts) and near_d2[kq - 1] <= r2:
+    if kq == m + 1:
         own = 0
         for q in range(kq):
             if near[q] == b:
@@ -454,12 +552,12 @@ def _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d
                     if ring[i] == near[q]:
                         own += 1
                         break
-        if own == kq and kq == m + 1:
-            return True
-        kq = min(len(pts), len(near))
-        kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
-        if kq == len(near) and near_d2[kq - 1] < r2:
-            return False                                  # too many blobs to tell
+        if own == kq:
+            return 1
+    kq = min(len(pts), len(near))
+    kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
+    if kq == len(near) and near_d2[kq - 1] < r2:
+        return 0                                      # too many blobs to tell
     for q in range(kq):
         j = near[q]
         if near_d2[q] >= r2:
@@ -477,17 +575,18 @@ def _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d
         py = pts[j, 1]
         for i in range(m):
             a = ring[i]
-            c = ring[(i + 1) % m]
+            c = ring[i + 1] if i + 1 < m else ring[0]
             # inside (or on) triangle (b, a, c), which is counter-clockwise
             if ((pts[a, 0] - pts[b, 0]) * (py - pts[b, 1]) - (pts[a, 1] - pts[b, 1]) * (px - pts[b, 0]) >= 0.0
                     and (pts[c, 0] - pts[a, 0]) * (py - pts[a, 1]) - (pts[c, 1] - pts[a, 1]) * (px - pts[a, 0]) >= 0.0
                     and (pts[b, 0] - pts[c, 0]) * (py - pts[c, 1]) - (pts[b, 1] - pts[c, 1]) * (px - pts[c, 0]) >= 0.0):
-                return False
-    return True
+                return 0
+    return 1
 
 
 @numba.njit(cache=True)
-def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, fan, pitch, gate, order, stop_after):
+def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, fan, closed, pitch, gate, order,
+                 stop_after):
     """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
 
     The neighbourhood of a blob's slot is the identified slots of ``nbr2``; the blob itself and
@@ -495,10 +594,11 @@ def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, fan, pitch, gate, o
     position the affine map fitted to the rest of the neighbourhood predicts for it; and the blob
     must be the unambiguous nearest blob to its own prediction (R_AMBIGUOUS otherwise: at least
     twice as near as the second-nearest and 0.15 pitches nearer). A blob failing these is still
-    consistent when it is the vertex of an intact image of its closed design fan
-    (:func:`_embedded`). ``tree``: :func:`kd_build` of ``pts``. Blobs are visited in ``order``;
-    with ``stop_after`` > 0 the visit stops once that many are inconsistent (the anchoring test
-    needs only that much evidence)."""
+    consistent when it is the vertex of an intact image of its design fan (:func:`_embedded`).
+    ``tree``: :func:`kd_build` of ``pts``; with ``has_tree`` False (a placeholder tree) a blob whose
+    test needs a blob search gets :data:`_NEED_TREE` instead (not counted as inconsistent).
+    Blobs are visited in ``order``; with ``stop_after`` > 0 the visit stops once that many are
+    inconsistent (the anchoring test needs only that much evidence)."""
     n = len(slot_of)
     status = np.zeros(n, np.int64)
     K = nbr2.shape[1]
@@ -519,10 +619,15 @@ def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, fan, pitch, gate, o
         if s < 0:
             continue
         # an intact fan is the cheaper test, and the one a strongly pressed neighbourhood passes
-        st = 0
-        if not _embedded(pts, tree, b, s, blob_of, xy, fan, pitch, gate, ring, near, near_d2):
-            st = _loo_status(pts, tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blobs, immediate, two,
-                             two_d2, K, K1)
+        e = _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near,
+                      near_d2)
+        if e == 1:
+            st = 0
+        elif e == _NEED_TREE:
+            st = _NEED_TREE
+        else:
+            st = _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blobs, immediate,
+                             two, two_d2, K, K1)
         status[b] = st
         if st == R_INCONSISTENT:
             n_bad += 1
@@ -530,7 +635,8 @@ def _consistency(pts, tree, slot_of, blob_of, xy, nbr, nbr2, fan, pitch, gate, o
 
 
 @numba.njit(cache=True)
-def _loo_status(pts, tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blobs, immediate, two, two_d2, K, K1):
+def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blobs, immediate, two, two_d2, K,
+                K1):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status."""
     slots[0] = s
     blobs[0] = b
@@ -580,6 +686,8 @@ def _loo_status(pts, tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, slots, blo
         if r > gate:
             return R_INCONSISTENT
         if q == 0 and len(pts) >= 2:
+            if not has_tree:
+                return _NEED_TREE
             kd_query(pts, tree, pu, pv, 2, two, two_d2)
             d1 = math.sqrt(two_d2[0]) / scale
             d2 = math.sqrt(two_d2[1]) / scale
@@ -640,6 +748,63 @@ def _tree(pts: np.ndarray):
     return t
 
 
+_MESHES: dict = {}
+_PLACEHOLDER_TREE = kd_build(np.zeros((1, 2)))
+_NO_ADJ = (np.zeros(1, np.int64), np.zeros(0, np.int64))
+
+
+def use_triangulation(pts: np.ndarray, simplices: np.ndarray | None) -> None:
+    """Register the Delaunay triangles (M, 3) of the blob centres ``pts`` (the very array later
+    passed to :func:`certify`), which ring coding has computed anyway: a blob whose Delaunay
+    neighbours are exactly its design fan has an empty fan without a neighbour search. ``None``
+    forgets the registered triangles (the emptiness test then searches)."""
+    _MESHES.clear()
+    if simplices is not None and len(simplices):
+        _MESHES[id(pts)] = (pts, _adjacency(np.ascontiguousarray(simplices, dtype=np.int64), len(pts)))
+
+
+def _adj(pts: np.ndarray):
+    hit = _MESHES.get(id(pts))
+    if hit is not None and hit[0] is pts:
+        return hit[1]
+    return (np.zeros(len(pts) + 1, np.int64), _NO_ADJ[1])
+
+
+@numba.njit(cache=True)
+def _adjacency(simp, n):
+    """Neighbour lists (CSR: ``ptr`` (n+1,), ``idx``) of the vertices of triangles ``simp``."""
+    cnt = np.zeros(n + 1, np.int64)
+    for t in range(len(simp)):
+        for k in range(3):
+            cnt[simp[t, k] + 1] += 2
+    ptr = np.cumsum(cnt)
+    raw = np.empty(ptr[-1], np.int64)
+    fill = ptr[:-1].copy()
+    for t in range(len(simp)):
+        for k in range(3):
+            a = simp[t, k]
+            raw[fill[a]] = simp[t, (k + 1) % 3]
+            raw[fill[a] + 1] = simp[t, (k + 2) % 3]
+            fill[a] += 2
+    out_ptr = np.zeros(n + 1, np.int64)
+    out = np.empty(ptr[-1], np.int64)
+    w = 0
+    for a in range(n):
+        out_ptr[a] = w
+        for q in range(ptr[a], ptr[a + 1]):
+            v = raw[q]
+            dup = False
+            for r in range(out_ptr[a], w):
+                if out[r] == v:
+                    dup = True
+                    break
+            if not dup:
+                out[w] = v
+                w += 1
+    out_ptr[n] = w
+    return out_ptr, out[:w]
+
+
 def _blob_of(slot_of: np.ndarray, n_slots: int) -> np.ndarray:
     b = np.full(n_slots, -1, np.int64)
     lab = np.flatnonzero(slot_of >= 0)
@@ -647,12 +812,28 @@ def _blob_of(slot_of: np.ndarray, n_slots: int) -> np.ndarray:
     return b
 
 
+def _statuses(pts, adj, slot_of, lat, order=None):
+    """:func:`_consistency` of every labelled blob; the k-d tree of the blobs is built only when
+    some blob's test needs a search (usually none does: intact fans are checked on the Delaunay
+    triangulation)."""
+    blob_of = _blob_of(slot_of, len(lat.xy))
+    order = np.arange(len(slot_of)) if order is None else order
+    st = _consistency(pts, _PLACEHOLDER_TREE, False, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2,
+                      lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0)
+    need = np.flatnonzero(st == _NEED_TREE)
+    if len(need):
+        st2 = _consistency(pts, _tree(pts), True, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2,
+                           lat.fan, lat.fan_closed, lat.pitch, GATE, need, 0)
+        st[need] = st2[need]
+    return st
+
+
 def consistent(pts, slot_of, lat, reason):
     """Remove labels failing local consistency until none does; records the reason per slot."""
     slot_of = slot_of.copy()
+    adj = _adj(pts)
     for _ in range(len(lat.xy)):
-        st = _consistency(pts, _tree(pts), slot_of, _blob_of(slot_of, len(lat.xy)), lat.xy, lat.nbr, lat.nbr2,
-                          lat.fan, lat.pitch, GATE, np.arange(len(slot_of)), 0)
+        st = _statuses(pts, adj, slot_of, lat)
         bad = np.flatnonzero(st > 0)
         if len(bad) == 0:
             break
@@ -735,11 +916,31 @@ def _components(slot_of, blob_of, nbr):
     return comp
 
 
+@numba.njit(cache=True)
 def _rotation_deg(pts_img, xy_des) -> float:
-    a = xy_des - xy_des.mean(axis=0)
-    b = pts_img - pts_img.mean(axis=0)
-    c = a.T @ b  # 2x2: sum a_i b_i^T
-    return math.degrees(math.atan2(c[0, 1] - c[1, 0], c[0, 0] + c[1, 1]))
+    """In-plane rotation (deg) of the Procrustes fit of image points onto design points."""
+    m = len(pts_img)
+    ax = ay = bx = by = 0.0
+    for i in range(m):
+        ax += xy_des[i, 0]
+        ay += xy_des[i, 1]
+        bx += pts_img[i, 0]
+        by += pts_img[i, 1]
+    ax /= m
+    ay /= m
+    bx /= m
+    by /= m
+    c00 = c01 = c10 = c11 = 0.0          # sum a_i b_i^T
+    for i in range(m):
+        p = xy_des[i, 0] - ax
+        q = xy_des[i, 1] - ay
+        u = pts_img[i, 0] - bx
+        v = pts_img[i, 1] - by
+        c00 += p * u
+        c01 += p * v
+        c10 += q * u
+        c11 += q * v
+    return math.degrees(math.atan2(c01 - c10, c00 + c11))
 
 
 def _circle(p: np.ndarray):
@@ -865,12 +1066,19 @@ def _anchored(pts, slot_of, members, lat) -> bool:
         return False
     if len(lat.alt) == 0:
         return True
-    return _alternatives_excluded(pts, _tree(pts), slot_of, members, lat.alt, lat.alt_first, lat.xy, lat.nbr,
-                                  lat.nbr2, lat.fan, lat.pitch, GATE, ANCHOR_EVIDENCE)
+    adj = _adj(pts)
+    # without the blob search first (usually enough evidence), then with it
+    for tree, has_tree in ((_PLACEHOLDER_TREE, False), (None, True)):
+        if _alternatives_excluded(pts, _tree(pts) if tree is None else tree, has_tree, adj[0], adj[1], slot_of,
+                                  members, lat.alt, lat.alt_first, lat.xy, lat.nbr, lat.nbr2, lat.fan, lat.fan_closed,
+                                  lat.pitch, GATE, ANCHOR_EVIDENCE):
+            return True
+    return False
 
 
 @numba.njit(cache=True)
-def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr, nbr2, fan, pitch, gate, evidence):
+def _alternatives_excluded(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, members, alt, alt_first, xy, nbr, nbr2, fan,
+                           closed, pitch, gate, evidence):
     """Every alternative reading ``alt[a]`` of the patch ``members`` is excluded by ``evidence``
     markers: pushed outside the design (its map gives -1; only markers with EVIDENCE_IMMEDIATE
     identified immediate neighbours count) or inconsistent under it. A reading that
@@ -925,7 +1133,8 @@ def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr,
                     order[k] = b
                     k += 1
         need = evidence - outside
-        st = _consistency(pts, tree, alt_slot, blob_of, xy, nbr, nbr2, fan, pitch, gate, order, need)
+        st = _consistency(pts, tree, has_tree, adj_ptr, adj_idx, alt_slot, blob_of, xy, nbr, nbr2, fan, closed, pitch,
+                          gate, order, need)
         bad = 0
         for b in members:
             if st[b] == R_INCONSISTENT:
@@ -935,6 +1144,79 @@ def _alternatives_excluded(pts, tree, slot_of, members, alt, alt_first, xy, nbr,
         if bad < need:
             return False
     return True
+
+
+def certify_whole(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> bool:
+    """The common case in one compiled pass: every blob carries a proposed id, and every id of the
+    design is proposed (no defect at all). True when :func:`certify` would keep the whole proposal:
+    every marker consistent without a blob search (intact fans, :func:`_embedded`), the pattern
+    within the rotation limit, excluded from every alternative reading (and, for circular
+    patterns, centred). False means only "not decided here": :func:`certify` decides."""
+    N = len(lat.xy)
+    if len(pts) != N or len(slot_of) != N or N < MIN_PATCH:
+        return False
+    adj = _adj(pts)
+    if len(adj[1]) == 0:
+        return False
+    if not _whole_kernel(pts, _PLACEHOLDER_TREE, adj[0], adj[1], slot_of, lat.xy, lat.nbr, lat.nbr2, lat.fan,
+                         lat.fan_closed, lat.pitch, GATE, rotation_limit_deg(lat), lat.alt, lat.alt_first,
+                         ANCHOR_EVIDENCE):
+        return False
+    members = np.arange(N, dtype=np.int64)
+    return lat.translation_lattice or _centre_holds(pts, slot_of, members, lat)
+
+
+@numba.njit(cache=True)
+def _whole_kernel(pts, tree, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, fan, closed, pitch, gate, limit, alt, alt_first,
+                  evidence):
+    """:func:`certify_whole` without the circular patterns' centre test."""
+    n = len(slot_of)
+    blob_of = np.full(len(xy), -1, np.int64)
+    for b in range(n):
+        s = slot_of[b]
+        if s < 0 or blob_of[s] >= 0:
+            return False
+        blob_of[s] = b
+    order = np.arange(n)
+    st = _consistency(pts, tree, False, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, fan, closed, pitch, gate,
+                      order, 0)
+    n_need = 0
+    for b in range(n):
+        if st[b] == _NEED_TREE:
+            n_need += 1
+        elif st[b] != 0:
+            return False
+    has_tree = False
+    if n_need:
+        # the fans that are not exactly Delaunay stars need the blob search
+        tree = kd_build(pts)
+        has_tree = True
+        need = np.empty(n_need, np.int64)
+        k = 0
+        for b in range(n):
+            if st[b] == _NEED_TREE:
+                need[k] = b
+                k += 1
+        st = _consistency(pts, tree, True, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, fan, closed, pitch, gate,
+                          need, 0)
+        for b in need:
+            if st[b] != 0:
+                return False
+    des = np.empty((n, 2))
+    for b in range(n):
+        des[b, 0] = xy[slot_of[b], 0]
+        des[b, 1] = xy[slot_of[b], 1]
+    if abs(_rotation_deg(pts, des)) > limit:
+        return False
+    if alt.shape[0] == 0:
+        return True
+    if _alternatives_excluded(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2,
+                              fan, closed, pitch, gate, evidence):
+        return True
+    if has_tree:
+        return False
+    return _alternatives_excluded(pts, kd_build(pts), True, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr,
+                                  nbr2, fan, closed, pitch, gate, evidence)
 
 
 def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray | None = None):
@@ -964,7 +1246,7 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
     comp = comp_of[lab]
     n_comp = int(comp.max()) + 1
     beyond = np.zeros(n_comp, np.int64)
-    if len(lat.beyond_slot):
+    if len(lat.beyond_slot) and len(lab) < len(slot_of):   # a hit is an unidentified blob
         hits = _beyond_hits(pts, _tree(pts), slot_of, blob_of, lat.xy, lat.nbr2, lat.pitch, lat.beyond_slot,
                             lat.beyond_xy, GROW_GATE)
         # a real outer row continues along the ring: the longest run of consecutive outer-ring
@@ -992,7 +1274,7 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
         code = R_OK
         if len(members) < MIN_PATCH:
             code = R_FEW
-        elif abs(_rotation_deg(pts[members], lat.xy[slot_of[members]])) > limit:
+        elif abs(_rotation_deg(np.ascontiguousarray(pts[members]), np.ascontiguousarray(lat.xy[slot_of[members]]))) > limit:
             code = R_ROTATION
         elif beyond[c] >= BEYOND_HITS:
             code = R_ANCHOR
