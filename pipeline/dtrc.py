@@ -48,7 +48,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from pipeline.delaunay import delaunay_certified
 from pipeline.design import SensorDesign
-from pipeline.identity import (R_NO_BLOB, REASONS, certify, certify_whole, consistent, grow, lattice_of,
+from pipeline.identity import (R_NO_BLOB, REASONS, certify, certify_whole, consistent, follow, grow, lattice_of,
                                register_seed, use_triangulation)
 from pipeline.kdtree import kd_build, kd_query
 from pipeline.types import Blobs, MarkerMatches
@@ -904,11 +904,9 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         removed = _verify_and_grow(pts, ids, active, xy_d, design.pattern.separation_mm, n_layers + 2)
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
-    prior = None
     if previous is not None:
-        def prior():
-            return carry_ids(np.asarray(previous[0], np.float64).reshape(-1, 2), np.asarray(previous[1], np.int64), pts)
-    ids, reason = _certain_ids(pts, ids, design, failed, msgs, prior)
+        previous = (np.asarray(previous[0], np.float64).reshape(-1, 2), np.asarray(previous[1], np.int64))
+    ids, reason = _certain_ids(pts, ids, design, failed, msgs, previous)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
                       tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched))
@@ -932,12 +930,14 @@ SEED_BELOW = 0.9
 
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
-                 msgs: list[str], prior=None) -> tuple[np.ndarray, np.ndarray]:
+                 msgs: list[str], previous=None) -> tuple[np.ndarray, np.ndarray]:
     """The certainty rule (:mod:`pipeline.identity`) applied to the ring-coding proposal and, when
-    given, to ``prior()`` (ids carried from the previous frame, :func:`carry_ids`; called only when
-    the ring-coding proposal is not certified whole), each extended by growth; when that leaves
-    markers unidentified, also to the placements of a lattice registration independent of ring
-    peeling. Returns (certified id per blob, reason code per design id)."""
+    ``previous`` (the previous frame's certain markers: xy_px (M, 2), ids (M,)) is given and the
+    proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
+    by growth; when that leaves markers unidentified, also to the placements of a lattice
+    registration independent of ring peeling. Markers still unidentified are then followed from the
+    previous frame (:func:`pipeline.identity.follow`). Returns (certified id per blob, reason code
+    per design id)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)
     reason = np.full(n_slots, R_NO_BLOB, np.int64)
@@ -968,8 +968,8 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
 
     enough = SEED_BELOW * min(n_slots, len(pts))
     cands = [run(proposal)]
-    if prior is not None:
-        carried = prior()
+    if previous is not None:
+        carried = carry_ids(previous[0], previous[1], pts)
         if (carried >= 0).any():
             cands.append(run(carried))
     if max(map(count, cands)) < enough:
@@ -981,6 +981,11 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     if len(cands) > 1 and count(cands[1]) > 0:
         cands.append(run(_merge(cands[0][0], cands[1][0])))
     ids, reason = max(cands, key=count)
+    if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
+        before = int((ids >= 0).sum())
+        ids = follow(previous[0], previous[1], pts, ids, lat)
+        if int((ids >= 0).sum()) > before:
+            msgs.append(f"followed {int((ids >= 0).sum()) - before} marker(s) from the previous frame")
     reason[ids[ids >= 0]] = 0
     n_certified = int((ids >= 0).sum())
     if defects or n_certified < n_slots:
