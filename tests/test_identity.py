@@ -10,7 +10,7 @@ tests and the benchmark's figures speak of the same trials.
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from benchmarks.experiments.identification import PATTERN_DESIGNS, add_defects, run_trial, view_px
@@ -178,3 +178,113 @@ def test_tracker_proposes_previous_ids_without_ever_relabelling(name, step_sep):
                for i, a, b in zip(m1.ids.tolist(), m1.left_px.tolist(), m1.right_px.tolist()))
     present = np.intersect1d(tl[tl >= 0], tr[tr >= 0])
     assert len(m1.ids) >= 0.9 * len(present)
+
+
+def _pressed_view(name, depth_mm, sigma_mm, lateral):
+    """The left view (px, canonical id order) of an analytic Gaussian press through the nominal
+    calibration and the refracting stack."""
+    from pipeline.refraction import project_through_stack
+    from pipeline.synthetic import gaussian_press_markers
+
+    design = DESIGNS[name]
+    xyz = gaussian_press_markers(design, depth_mm, sigma_mm=sigma_mm, lateral=lateral)
+    return np.ascontiguousarray(project_through_stack(xyz, nominal_calibration(design), design)[0])
+
+
+def _without_fans(lat):
+    from pipeline.identity import Lattice
+
+    return Lattice(**{**lat.__dict__, "fan": np.full_like(lat.fan, -1)})
+
+
+@pytest.mark.parametrize("name, sigma_mm, lateral", [("hexagon127", 1.3, 0.3), ("hexagon127", 1.3, 0.6),
+                                                     ("square121", 1.3, 0.6), ("hexagon217_sep180", 2.0, 0.3)])
+def test_deformed_but_complete_neighbourhoods_are_certified(name, sigma_mm, lateral):
+    """A 5 mm press of a sharp Gaussian crowds and shears the markers near its tip so strongly that
+    the leave-one-out affine fits withdraw correct ids (the twin's pressed frames lost 3-14 markers
+    per view that way). The markers are all there and each one's design fan is intact in the image:
+    the fan test certifies the true reading whole, and ring coding of the view emits no wrong id."""
+    design = DESIGNS[name]
+    lat = lattice_of(design)
+    uv = _pressed_view(name, 5.0, sigma_mm, lateral)
+    truth = np.arange(len(uv))
+    loo_only = certify(uv, truth, _without_fans(lat), np.zeros(len(uv), np.int64))
+    assert np.count_nonzero(loo_only >= 0) < len(uv)                 # the affine fits alone withdraw some
+    assert np.array_equal(certify(uv, truth, lat, np.zeros(len(uv), np.int64)), truth)
+    ids = code_rings(_blobs(uv), design).ids
+    assert _wrong(ids, truth) == 0
+    assert np.count_nonzero(ids >= 0) >= np.count_nonzero(loo_only >= 0)
+
+
+@settings(derandomize=True, database=None, max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
+@given(seed=seeds, name=st.sampled_from(["hexagon127", "square121", "hexagon217_sep180"]),
+       sigma=st.floats(1.0, 2.5), lateral=st.floats(0.0, 0.6), rate=st.floats(0.0, 0.1))
+def test_no_wrong_id_in_sharply_pressed_views_with_defects(seed, name, sigma, lateral, rate):
+    """The fan test under defects: sharply pressed views (5 mm, sigma 1-2.5 mm) with missing and
+    spurious blobs (spurious also right next to markers near the tip) never give a wrong id.
+    Views where two markers converge to less than half the median separation are out of scope:
+    such pins touch and merge in detection, and with one of them missing the other sits where
+    the missing one should be (indistinguishable, as in the benchmark's notes)."""
+    design = DESIGNS[name]
+    rng = np.random.default_rng(seed)
+    uv = _pressed_view(name, 5.0, sigma, lateral)
+    nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+    assume(nn.min() >= 0.5 * np.median(nn))
+    pts, truth, _ = add_defects(uv, rng, missing=rate, spurious=rate, px_per_sep=float(np.median(nn)))
+    assert _wrong(code_rings(_blobs(pts), design).ids, truth) == 0
+
+
+def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
+    """The fan test is topological: two neighbours' ids swapped fold the fans that contain them, and
+    a blob inside a marker's fan (a spurious blob beside it) breaks its emptiness."""
+    from pipeline.identity import _blob_of, _embedded, _tree, kd_build, use_triangulation
+    from pipeline.dtrc import _nn_and_mesh
+
+    name = "hexagon127"
+    lat = lattice_of(DESIGNS[name])
+    uv = _pressed_view(name, 5.0, 1.3, 0.3)
+    truth = np.arange(len(uv))
+    centre = int(np.flatnonzero(lat.layer_of == 0)[0])
+
+    def intact(pts, labels, b):
+        use_triangulation(pts, _nn_and_mesh(pts)[1][0])
+        from pipeline.identity import _adj
+        adj = _adj(pts)
+        ring = np.empty(lat.fan.shape[1], np.int64)
+        near = np.empty(24, np.int64)
+        return _embedded(pts, kd_build(pts), True, adj[0], adj[1], b, labels[b], _blob_of(labels, len(lat.xy)),
+                         lat.xy, lat.fan, lat.fan_closed, lat.pitch, 0.35, ring, near, np.empty(24))
+
+    assert intact(uv, truth, centre) == 1
+    a, b = lat.fan[centre, 0], lat.fan[centre, 1]
+    swapped = truth.copy()
+    swapped[[a, b]] = swapped[[b, a]]
+    assert intact(uv, swapped, centre) == 0
+    ghost = np.vstack([uv, uv[centre] + 0.3 * (uv[a] - uv[centre])])
+    assert intact(ghost, np.append(truth, -1), centre) == 0
+
+
+@pytest.mark.parametrize("name, sigma_mm", [("hexagon217_sep180", 2.0), ("hexagon217_sep180", 1.2),
+                                            ("square121", 2.0)])
+def test_temporal_certification_follows_crowded_markers_through_a_press(name, sigma_mm):
+    """A press sequence from rest to 5 mm (11 frames, analytic, lateral bulge 0.3): in the deepest
+    frames ring coding and the local tests leave markers of the crowded tip unidentified; following
+    them from the previous frame identifies every marker, and no id is ever wrong."""
+    from pipeline.dtrc import DTRCTracker
+    from pipeline.refraction import project_through_stack
+    from pipeline.synthetic import gaussian_press_markers
+
+    design = DESIGNS[name]
+    calib = nominal_calibration(design)
+    tracked, single = DTRCTracker(design), DTRCTracker(design, temporal=False)
+    for depth in np.linspace(0.0, 5.0, 11):
+        xyz = gaussian_press_markers(design, float(depth), sigma_mm=sigma_mm, lateral=0.3)
+        left, right = project_through_stack(xyz, calib, design)
+        m = tracked.update(_blobs(left), _blobs(right))
+        s = single.update(_blobs(left), _blobs(right))
+        for res in (m, s):
+            np.testing.assert_array_equal(res.left_px, left[res.ids])     # every emitted id is right
+            np.testing.assert_array_equal(res.right_px, right[res.ids])
+    assert len(s.ids) < design.marker_count                     # one frame alone leaves some out ...
+    assert len(m.ids) == design.marker_count                    # ... the sequence identifies them all
