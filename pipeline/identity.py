@@ -64,10 +64,10 @@ GROW_GATE = 0.4
 #: A blob takes (or keeps) an id only if it is at least twice as near to the slot's prediction as
 #: any other blob and this many local separations nearer.
 AMBIGUITY_MARGIN = 0.15
-#: A marker with an unidentified design neighbour (its prediction is extrapolated across the gap)
-#: is ambiguous when another blob lies within this many local separations of it: a spurious blob
-#: 0.2-0.3 separations from such a marker in a strongly pressed view was nearer the extrapolated
-#: prediction than the marker itself.
+#: A marker with two or more unidentified design neighbours (its prediction is extrapolated across
+#: the gap) is ambiguous when another blob lies within this many local separations of it: a spurious
+#: blob 0.2-0.3 separations from such a marker in a strongly pressed view was nearer the
+#: extrapolated prediction than the marker itself.
 CLOSE_BLOB = 0.4
 #: Temporal certification (:func:`follow`): design neighbours identified in both frames a followed
 #: marker's motion is taken from, and the gate (fraction of the blob's nearest-neighbour distance)
@@ -703,9 +703,9 @@ def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, pitch, gate, 
             for k1 in range(K1):
                 if nbr[s, k1] >= 0:
                     n_design += 1
-            if n_imm < n_design:
-                # a neighbourhood with a gap extrapolates its prediction: a second blob closer to
-                # b than CLOSE_BLOB separations leaves open which of the two is the marker
+            if n_imm <= n_design - 2:
+                # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
+                # to b than CLOSE_BLOB separations leaves open which of the two is the marker
                 kd_query(pts, tree, pts[b, 0], pts[b, 1], 2, two, two_d2)
                 if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
                     return R_AMBIGUOUS
