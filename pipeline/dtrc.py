@@ -48,10 +48,12 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from pipeline.delaunay import delaunay_certified
 from pipeline.design import SensorDesign
+from pipeline.identity import (R_NO_BLOB, REASONS, certify, certify_whole, consistent, follow, grow, lattice_of,
+                               register_seed, use_triangulation)
 from pipeline.kdtree import kd_build, kd_query
 from pipeline.types import Blobs, MarkerMatches
 
-__all__ = ["RingCoding", "code_rings", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
+__all__ = ["RingCoding", "code_rings", "carry_ids", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
            "mesh_edges", "peel_rings", "OUTLIER_NN_FACTOR", "SLIVER_RADIUS_FACTOR", "LONG_EDGE_FACTOR", "PREDICT_GATE"]
 
 #: Points whose nearest neighbour is farther than this x the median NN distance are spurious
@@ -90,6 +92,8 @@ class RingCoding:
         Edges (blob indices) of the carved Delaunay mesh (for drawing).
     messages : tuple of str
         Human-readable notes on mismatches.
+    unmatched_reasons : tuple of str
+        Why each of ``unmatched_ids`` was not identified (same order).
     """
 
     ids: np.ndarray
@@ -99,6 +103,7 @@ class RingCoding:
     unmatched_ids: np.ndarray
     mesh_edges: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))
     messages: tuple[str, ...] = ()
+    unmatched_reasons: tuple[str, ...] = ()
 
     @property
     def complete(self) -> bool:
@@ -809,7 +814,8 @@ def _shift_by_prediction(members, d_ids, pts, ids, xy_d, pitch_mm):
     return best
 
 
-def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
+def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> RingCoding:
     """DTRC ring coding of one view.
 
     Parameters
@@ -818,6 +824,9 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
         Marker centres of ONE view (px).
     design : SensorDesign
         Gives the ring count (``pattern.layers``), ring sizes and canonical ids.
+    previous : (xy_px (M, 2), ids (M,)), optional
+        The identified markers of the previous frame of the same view: they propose ids
+        (:func:`carry_ids`) where ring coding cannot, certified like any other proposal.
 
     Returns
     -------
@@ -841,8 +850,9 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
     msgs: list[str] = []
     if n < 4:
         return RingCoding(ids, np.full(n, -1, np.int64), (), expected, np.arange(len(xy_d), dtype=np.int64),
-                          messages=(f"only {n} blobs",))
+                          messages=(f"only {n} blobs",), unmatched_reasons=(f"only {n} blobs detected",) * len(xy_d))
     nn, tri = _nn_and_mesh(pts)
+    use_triangulation(pts, None if tri is None else tri[0])
     med_nn = _median(nn)
     active = nn <= OUTLIER_NN_FACTOR * med_nn
     n_dropped = n - int(np.count_nonzero(active))
@@ -894,7 +904,112 @@ def code_rings(blobs: Blobs, design: SensorDesign) -> RingCoding:
         removed = _verify_and_grow(pts, ids, active, xy_d, design.pattern.separation_mm, n_layers + 2)
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
-    return RingCoding(ids, ring_of, found, expected, _unmatched(ids, len(xy_d)), edges, tuple(msgs))
+    if previous is not None:
+        previous = (np.asarray(previous[0], np.float64).reshape(-1, 2), np.asarray(previous[1], np.int64))
+    ids, reason = _certain_ids(pts, ids, design, failed, msgs, previous)
+    unmatched = _unmatched(ids, len(xy_d))
+    return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
+                      tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched))
+
+
+def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Union of two id proposals per blob; a blob given two different ids, or an id given to two
+    different blobs, is dropped from both."""
+    out = np.where(a >= 0, a, b)
+    conflict = (a >= 0) & (b >= 0) & (a != b)
+    out[conflict] = -1
+    lab = out[out >= 0]
+    u, cnt = np.unique(lab, return_counts=True)
+    out[np.isin(out, u[cnt > 1])] = -1
+    return out
+
+
+#: The lattice registration is tried when ring coding leaves more than this fraction of the blobs
+#: (or slots) unidentified.
+SEED_BELOW = 0.9
+
+
+def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
+                 msgs: list[str], previous=None) -> tuple[np.ndarray, np.ndarray]:
+    """The certainty rule (:mod:`pipeline.identity`) applied to the ring-coding proposal and, when
+    ``previous`` (the previous frame's certain markers: xy_px (M, 2), ids (M,)) is given and the
+    proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
+    by growth; when that leaves markers unidentified, also to the placements of a lattice
+    registration independent of ring peeling. Markers still unidentified are then followed from the
+    previous frame (:func:`pipeline.identity.follow`). Returns (certified id per blob, reason code
+    per design id)."""
+    lat = lattice_of(design)
+    n_slots = len(lat.xy)
+    reason = np.full(n_slots, R_NO_BLOB, np.int64)
+    if len(pts) < 4:
+        return np.full(len(pts), -1, np.int64), reason
+    if int((proposal >= 0).sum()) == n_slots:
+        # ring coding identified every marker (the common case, pressed frames included): the
+        # certainty rule need only confirm it, in one compiled pass when there is no other blob
+        if certify_whole(pts, proposal, lat):
+            if defects:
+                msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
+            reason[:] = 0
+            return proposal.copy(), reason
+        ids = certify(pts, proposal, lat, reason)
+        if int((ids >= 0).sum()) == n_slots:
+            if defects:
+                msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
+            return ids, reason
+        reason[:] = R_NO_BLOB
+    # Each proposal is made locally consistent, grown and certified on its own (a wrong proposal
+    # must not spoil a right one); the two best certified results are merged and certified again.
+    def run(p):
+        r = np.full(n_slots, R_NO_BLOB, np.int64)
+        return certify(pts, grow(pts, consistent(pts, p, lat, r), lat, r), lat, r), r
+
+    def count(c):
+        return int((c[0] >= 0).sum())
+
+    enough = SEED_BELOW * min(n_slots, len(pts))
+    cands = [run(proposal)]
+    if previous is not None:
+        carried = carry_ids(previous[0], previous[1], pts)
+        if (carried >= 0).any():
+            cands.append(run(carried))
+    if max(map(count, cands)) < enough:
+        for p in register_seed(pts, lat):
+            cands.append(run(p))
+            if count(cands[-1]) >= enough:
+                break
+    cands.sort(key=lambda c: -count(c))
+    if len(cands) > 1 and count(cands[1]) > 0:
+        cands.append(run(_merge(cands[0][0], cands[1][0])))
+    ids, reason = max(cands, key=count)
+    if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
+        before = int((ids >= 0).sum())
+        ids = follow(previous[0], previous[1], pts, ids, lat)
+        if int((ids >= 0).sum()) > before:
+            msgs.append(f"followed {int((ids >= 0).sum()) - before} marker(s) from the previous frame")
+    reason[ids[ids >= 0]] = 0
+    n_certified = int((ids >= 0).sum())
+    if defects or n_certified < n_slots:
+        msgs.append(f"certainty rule: {n_certified} of {n_slots} ids certain")
+    return ids, reason
+
+
+def carry_ids(prev_xy_px: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Ids of the previous frame's identified markers proposed for the current blobs: each previous
+    marker goes to the nearest current blob when that blob is within a third of the local spacing,
+    at least twice as near as the second-nearest blob, and nearest to no other previous marker.
+    Only a proposal: a whole pattern that moved by one spacing between frames carries consistently
+    wrong ids, which the anchoring test withdraws."""
+    out = np.full(len(pts), -1, np.int64)
+    if len(pts) < 2 or len(prev_ids) < 2:
+        return out
+    tree = cKDTree(pts)
+    spacing = float(np.median(tree.query(pts, k=2)[0][:, 1]))
+    d, j = tree.query(prev_xy_px, k=2)
+    ok = (d[:, 0] <= spacing / 3) & (d[:, 1] >= 2 * d[:, 0])
+    u, cnt = np.unique(j[ok, 0], return_counts=True)
+    ok &= ~np.isin(j[:, 0], u[cnt > 1])
+    out[j[ok, 0]] = prev_ids[ok]
+    return out
 
 
 # ----- stereo matching and tracking ---------------------------------------------------------
@@ -939,25 +1054,33 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
 
 
 class DTRCTracker:
-    """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion.
+    """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
+    previous frame's identified markers propose ids where coding alone cannot (crowding, large
+    deformation, partial occlusion), under the same certainty rule.
 
     ``update(left, right) -> MarkerMatches`` (also callable). ``last_codings`` holds the two
     :class:`RingCoding` of the latest frame.
     """
 
-    def __init__(self, design: SensorDesign) -> None:
+    def __init__(self, design: SensorDesign, *, temporal: bool = True) -> None:
         self.design = design
+        self.temporal = temporal
         self.last_codings: tuple[RingCoding, RingCoding] | None = None
+        self._previous: list | None = None
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
-        lc, rc = code_rings(left, self.design), code_rings(right, self.design)
+        prev = self._previous if self.temporal else None
+        lc = code_rings(left, self.design, previous=None if prev is None else prev[0])
+        rc = code_rings(right, self.design, previous=None if prev is None else prev[1])
         self.last_codings = (lc, rc)
+        self._previous = [(b.xy_px[c.ids >= 0], c.ids[c.ids >= 0]) for b, c in ((left, lc), (right, rc))]
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     __call__ = update
 
     def reset(self) -> None:
         self.last_codings = None
+        self._previous = None
 
 
 class NearestNeighbourTracker:

@@ -37,10 +37,19 @@ def _stats(values: list[float]) -> dict[str, float]:
             "max_ms": float(a.max())}
 
 
+def _busy_processes(n: int) -> list:
+    """``n`` processes spinning on a core each: a stated background load."""
+    import subprocess
+    import sys
+
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
 def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome"), n_frames: int = 200,
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
-                n_distinct_frames: int = 20, progress: bool = True) -> dict:
-    """Time the whole runner per stage on synthetic frames with OpenCV limited to one thread.
+                n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0) -> dict:
+    """Time the whole runner per stage on synthetic frames (the runner holds BLAS, OpenMP and
+    OpenCV at one thread per frame: :mod:`pipeline.threads`).
 
     Parameters
     ----------
@@ -48,6 +57,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     n_frames : frames processed per design (the first, warm-up frame is excluded from the statistics)
     out_dir : if given, writes ``out_dir/latency.json``
     n_distinct_frames : distinct synthetic frames rendered (press depths 0-3 mm), cycled through
+    background_procs : processes spinning on a core each while the frames are timed (a stated
+        background load; 0 = none)
 
     Returns
     -------
@@ -61,9 +72,11 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     rng = np.random.default_rng(seed)
     result: dict = {"paper_ms": PAPER_LATENCY_MS, "goal_median_ms": GOAL_MEDIAN_MS, "n_frames": n_frames,
                     "refraction": refraction, "seed": seed, "opencv_threads": 1,
+                    "background_procs": int(background_procs),
                     "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                                 "cpu_count": os.cpu_count(), "opencv": cv2.__version__, "numpy": np.__version__},
                     "designs": {}}
+    load = _busy_processes(int(background_procs))
     try:
         for name in design_names:
             design = load_design(name)
@@ -87,6 +100,9 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
             }
     finally:
         cv2.setNumThreads(threads)
+        for proc in load:
+            proc.terminate()
+            proc.wait()
     result["timestamp"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     if out_dir is not None:
         out = Path(out_dir)

@@ -19,6 +19,7 @@ from pipeline.design import SensorDesign
 from pipeline.errors import UserError
 from pipeline.refraction import correct_exact, correct_linear
 from pipeline.surface import MIN_MARKERS, height_map, skin_surface
+from pipeline.threads import one_thread
 from pipeline.triangulation import matched_rays, triangulate
 from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
@@ -48,8 +49,9 @@ class FrameResult:
     ``matches`` pixels per marker; ``apparent`` straight-ray positions; ``corrected`` refraction-corrected
     marker positions; ``skin`` skin points + normals (None with fewer than MIN_MARKERS markers);
     ``height_map`` (None unless requested); ``timings_ms`` per stage and ``total``; ``unmatched_ids``
-    design ids not reconstructed in this frame; ``n_expected`` markers of the design. 3-D in the sensor
-    frame, mm.
+    design ids not reconstructed in this frame; ``n_expected`` markers of the design;
+    ``unmatched_reasons`` {id: why it was not reconstructed} (per view: the certainty rule's reason,
+    see :mod:`pipeline.identity`; or the stereo check's). 3-D in the sensor frame, mm.
     """
 
     index: int
@@ -64,6 +66,7 @@ class FrameResult:
     n_expected: int
     n_blobs: tuple[int, int] = (0, 0)
     notes: tuple[str, ...] = field(default_factory=tuple)
+    unmatched_reasons: dict = field(default_factory=dict)
 
     @property
     def n_matched(self) -> int:
@@ -86,9 +89,24 @@ class FrameResult:
         if len(self.unmatched_ids):
             ids = ",".join(str(i) for i in self.unmatched_ids[:12]) + ("..." if len(self.unmatched_ids) > 12 else "")
             s += f", unmatched ids {ids}"
+            why = self.reason_counts()
+            if why:
+                s += " [" + "; ".join(f"{n} {r}" for r, n in why.items()) + "]"
         if self.notes:
             s += " (" + "; ".join(self.notes) + ")"
         return s
+
+    def reason_counts(self) -> dict[str, int]:
+        """How many unmatched ids each kind of reason accounts for (view prefixes and the stereo
+        check's numbers dropped), most frequent first."""
+        from collections import Counter
+
+        kinds = Counter()
+        for r in self.unmatched_reasons.values():
+            first = r.split("; ")[0]
+            kind = first.split(": ", 1)[1] if first.startswith(("left: ", "right: ")) else first
+            kinds["stereo check" if kind.startswith("stereo check") else kind] += 1
+        return dict(kinds.most_common())
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -149,6 +167,7 @@ class Reconstructor:
         self._all_ids = np.arange(design.marker_count, dtype=np.int64)
         self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
+        self._stereo_reasons: dict[int, str] = {}
         if isinstance(reference, MarkerCloud):
             self._reference = reference
         elif isinstance(reference, StereoFrame):
@@ -179,6 +198,10 @@ class Reconstructor:
         z = cloud.xyz_mm[:, 2]
         rest_z = self._rest_z[cloud.ids]
         ok = (gap <= STEREO_GATE_MM) & (z >= self.design.gel_acrylic_z_mm) & (z <= rest_z + STEREO_BULGE_MM)
+        self._stereo_reasons = {
+            int(i): (f"stereo check: the two views' rays miss by {g:.2f} mm (gate {STEREO_GATE_MM} mm)"
+                     if g > STEREO_GATE_MM else f"stereo check: triangulated depth z = {zz:.2f} mm is outside the gel")
+            for i, g, zz in zip(cloud.ids[~ok].tolist(), gap[~ok].tolist(), z[~ok].tolist())}
         kept_cloud = cloud if ok.all() else MarkerCloud(cloud.ids[ok], cloud.xyz_mm[ok])
         good = np.isin(matches.ids, kept_cloud.ids)
         if good.all():
@@ -209,12 +232,19 @@ class Reconstructor:
         unmatched) rather than an error; bad frames are rejected by :class:`StereoFrame` itself."""
         if not isinstance(frame, StereoFrame):
             raise RunnerError(f"Reconstructor.process: expected a StereoFrame, got {type(frame).__name__}")
+        with one_thread():  # BLAS, OpenMP and OpenCV at one thread for the frame (pipeline.threads)
+            return self._process(frame)
+
+    def _process(self, frame: StereoFrame) -> FrameResult:
         t_start = time.perf_counter()
         notes: list[str] = []
         matches, n_blobs, timings = self._match(frame)
         t = time.perf_counter()
         matches, rejected, exact_cloud, rays = self._stereo_check(matches)
         timings["stereo_check"] = 1e3 * (time.perf_counter() - t)
+        reasons = self._view_reasons()
+        for i in rejected.tolist():
+            reasons[int(i)] = self._stereo_reasons.get(int(i), "stereo check: not one marker in both views")
         if len(rejected):
             notes.append(f"stereo check rejected {len(rejected)} left/right pair(s) (ids "
                          + ",".join(map(str, rejected[:12])) + ("..." if len(rejected) > 12 else "") + ")")
@@ -248,10 +278,23 @@ class Reconstructor:
         unmatched = np.setdiff1d(self._all_ids, corrected.ids)
         if n_blobs[0] == 0 or n_blobs[1] == 0:
             notes.append(f"no markers detected ({n_blobs[0]} left, {n_blobs[1]} right blobs)")
+        why = {int(i): reasons.get(int(i), "not identified in both views") for i in unmatched.tolist()}
         return FrameResult(index=frame.index, timestamp_s=frame.timestamp_s, matches=matches, apparent=apparent,
                            corrected=corrected, skin=skin, height_map=hm, timings_ms=timings,
                            unmatched_ids=unmatched, n_expected=self.design.marker_count, n_blobs=n_blobs,
-                           notes=tuple(notes))
+                           notes=tuple(notes), unmatched_reasons=why)
+
+    def _view_reasons(self) -> dict[int, str]:
+        """{id: reason} for ids the tracker left unidentified in either view (the DTRC tracker's
+        certainty-rule reasons; the nearest-neighbour tracker gives none)."""
+        out: dict[int, str] = {}
+        codings = getattr(self._tracker, "last_codings", None)
+        if not codings:
+            return out
+        for side, coding in zip(("left", "right"), codings):
+            for i, r in zip(coding.unmatched_ids.tolist(), coding.unmatched_reasons):
+                out[int(i)] = (out[int(i)] + "; " if int(i) in out else "") + f"{side}: {r}"
+        return out
 
 
 def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out_dir: str | Path, *,
@@ -338,7 +381,9 @@ def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out
             echo(res.summary(design))
             per_frame.append({"index": res.index, "timestamp_s": res.timestamp_s, "matched": res.n_matched,
                               "expected": res.n_expected, "max_abs_dz_mm": _finite_or_none(res.max_abs_dz_mm(design)),
-                              "unmatched_ids": res.unmatched_ids.tolist(), "timings_ms": res.timings_ms,
+                              "unmatched_ids": res.unmatched_ids.tolist(),
+                              "unmatched_reasons": {str(k): v for k, v in res.unmatched_reasons.items()},
+                              "timings_ms": res.timings_ms,
                               "notes": list(res.notes)})
             last = (res, hm)
             bar.update(1)

@@ -290,6 +290,7 @@ def test_registered_experiment_invariants(name, tmp_path):
 # Tiny settings for the cheap experiments' real runs in this test (kept in one place).
 TINY_PARAMS: dict[str, dict] = {
     "latency": {"n_frames": 5},
+    "identification": {"n_trials": 2},
 }
 
 

@@ -238,3 +238,32 @@ def test_stereo_check_rejects_pairs_that_cannot_be_one_marker():
     assert all(np.array_equal(a, b) for a, b in zip(rays, matched_rays(kept, calib)))
     kept_all, none, _, _ = rec._stereo_check(matches)    # true pairs all pass
     assert len(none) == 0 and len(kept_all) == design.marker_count
+
+
+def test_unmatched_markers_come_with_reasons(tmp_path):
+    """A frame with markers hidden in one view: every unmatched id has a reason naming the view
+    and the certainty rule's cause; reconstruct's summary.json carries them per frame."""
+    from pipeline.runner import reconstruct
+    from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
+
+    design = load_design("hexagon127")
+    calib = nominal_calibration(design)
+    xyz = gaussian_press_markers(design, 1.0)
+    frame = synth_stereo_frame(design, calib, xyz)
+    left = frame.left.copy()
+    from pipeline.refraction import project_through_stack
+
+    lp, _ = project_through_stack(xyz, calib, design)
+    hidden = [0, 50, 126]
+    for i in hidden:  # paint the markers out of the left view only
+        cv2.circle(left, (int(round(lp[i, 0])), int(round(lp[i, 1]))), 12, 25, -1)
+    frame2 = StereoFrame.from_pair(left, frame.right.copy(), index=1)
+    rec = Reconstructor(design, calib)
+    res = rec.process(frame2)
+    assert set(hidden) <= set(res.unmatched_ids.tolist())
+    assert set(res.unmatched_reasons) == set(res.unmatched_ids.tolist())
+    for i in hidden:
+        assert res.unmatched_reasons[i].startswith("left: no blob")
+    assert "no blob at its predicted position" in res.summary(design)
+    summary = reconstruct([frame2], Reconstructor(design, calib), tmp_path, progress=False, echo=lambda *_: None)
+    assert summary["per_frame"][0]["unmatched_reasons"]["50"].startswith("left: ")

@@ -40,7 +40,9 @@ def run(ctx: Context) -> Result:
 
     names = tuple(ctx.param("designs", DESIGNS))
     n_frames = int(ctx.param("n_frames", 200, quick=40))
-    raw = run_latency(names, n_frames, ctx.out_dir / "latency_raw", seed=ctx.seed, progress=ctx.progress)
+    load = int(ctx.param("background_procs", 0))
+    raw = run_latency(names, n_frames, ctx.out_dir / "latency_raw", seed=ctx.seed, progress=ctx.progress,
+                      background_procs=load)
     out = Result(designs=[load_design(n) for n in names])
     medians, p95s, matched = [], [], []
     rows = []
@@ -60,7 +62,10 @@ def run(ctx: Context) -> Result:
     out.tables["stages"] = rows
     m = raw.get("machine", {})
     out.notes.append(f"Machine: {m.get('processor', '?')}, {m.get('cpu_count', '?')} logical CPUs (shared), "
-                     f"OpenCV {m.get('opencv', '?')} with 1 thread; refraction '{raw.get('refraction', '?')}'; "
+                     f"OpenCV {m.get('opencv', '?')} and BLAS/OpenMP at 1 thread per frame (pipeline.threads); "
+                     f"background load: {load} process(es) spinning on a core each "
+                     "(--param background_procs=N); "
+                     f"refraction '{raw.get('refraction', '?')}'; "
                      f"{n_frames} frames per design after one warm-up frame; synthetic frames (pipeline.synthetic).")
     out.findings.append(Finding(f"the pipeline reconstructs a frame in about {PAPER_MS:.0f} ms",
                                 f"median {max(medians):.1f} ms (worst design), p95 {max(p95s):.1f} ms on this machine",
