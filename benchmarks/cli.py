@@ -68,7 +68,7 @@ def _bench(args: argparse.Namespace) -> int:
     params = _key_values(args.param, "--param")
     sources = None
     if args.error_sources is not None:
-        from twin.estimated import parse_sources
+        from benchmarks.estimated import parse_sources
 
         if args.calibration != "estimated":
             raise OptionError("bench --error-sources: only with --calibration estimated")

@@ -93,7 +93,7 @@ class Result:
     designs : list
         ``SensorDesign`` objects the experiment used (the first is "the" design in the JSON).
     setups : list of dict
-        Provenance of what the pipeline was given per design (``twin.estimated.SensorSetup.provenance``:
+        Provenance of what the pipeline was given per design (``benchmarks.estimated.SensorSetup.provenance``:
         calibration mode, drawn stack deviations, fitted index); recorded under ``calibration`` in the JSON.
     """
 
@@ -142,11 +142,11 @@ class Context:
         Where an experiment made of independent cells runs them (:func:`benchmarks.executor.run_cells`);
         None: local processes on all cores, or inline inside a sweep cell.
     calibration : {"oracle", "estimated"}
-        What the pipeline is told about the sensor (:mod:`twin.estimated`): the twin's exact cameras,
+        What the pipeline is told about the sensor (:mod:`benchmarks.estimated`): the twin's exact cameras,
         index and stack, or a chessboard calibration, a press-fitted index and a drawing the built
         stack deviates from within tolerances.
     error_sources : tuple of str or None
-        With ``calibration="estimated"``: the error sources kept (subset of ``twin.estimated.SOURCES``;
+        With ``calibration="estimated"``: the error sources kept (subset of ``benchmarks.estimated.SOURCES``;
         None: all), for an ablation.
     """
 
@@ -180,10 +180,10 @@ class Context:
         return [self.design(n) for n in names]
 
     def sensor_setup(self, design):
-        """The twin's sensor and what the pipeline is given for ``design`` (:func:`twin.estimated.sensor_setup`
+        """The twin's sensor and what the pipeline is given for ``design`` (:func:`benchmarks.estimated.sensor_setup`
         with this context's calibration mode, error sources and seed). The estimated chessboard calibration
         and index fit are cached under ``out_dir/calibration_cache`` per design and seed."""
-        from twin.estimated import sensor_setup
+        from benchmarks.estimated import sensor_setup
 
         return sensor_setup(design, mode=self.calibration, seed=self.seed, sources=self.error_sources,
                             cache_dir=self.out_dir / "calibration_cache", progress=self.progress)

@@ -90,7 +90,7 @@ class TapJob:
     path: str                           # where the finished tap is written
 
     step_mm: float = 15.0               # scan step the centre came from
-    setup: Any = None                   # twin.estimated.SensorSetup of the 'twin' back end (None: oracle)
+    setup: Any = None                   # benchmarks.estimated.SensorSetup of the 'twin' back end (None: oracle)
 
     def origin_mm(self) -> np.ndarray:
         return np.array([self.centre_mm[0], self.centre_mm[1], self.tap_z_mm])
@@ -172,7 +172,7 @@ def _twin_tap(job: TapJob) -> tuple[np.ndarray, np.ndarray]:
         raise TerrainScanError(f"sensor 'twin' needs the twin's physics/renderer ({exc}); use --sensor ideal") from None
     from twin.terrain import load_terrain_map, tap_indenter
 
-    from twin.estimated import sensor_setup
+    from benchmarks.estimated import sensor_setup
 
     # the twin presses the sensor as built; the pipeline is given the drawing and the setup's calibration
     setup = job.setup if job.setup is not None else sensor_setup(_design())
@@ -417,7 +417,7 @@ def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", senso
     ``engine``: where the taps run instead (:mod:`benchmarks.executor`, e.g. a Dask cluster whose
     workers share ``out_dir``: each tap writes its own file). A tap that fails does not stop the others;
     the scan then raises naming the failed taps, and a rerun computes only those.
-    ``setup``: the :class:`twin.estimated.SensorSetup` of the 'twin' back end (None: the twin's exact sensor).
+    ``setup``: the :class:`benchmarks.estimated.SensorSetup` of the 'twin' back end (None: the twin's exact sensor).
     """
     from twin.terrain import REGIONS, load_terrain_map, region
 

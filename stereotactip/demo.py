@@ -4,7 +4,7 @@
    (hexagon127) at the paper's 1 mm/s, capturing one stereo frame per millimetre, and writes frames
    (PNG), truth (NPZ) and its true calibration (OpenCV YAML). With ``--calibration estimated`` the
    twin's stack deviates from the drawing within manufacturing tolerances and the pipeline is given
-   what a user's calibration session would hand over instead (:mod:`twin.estimated`): a chessboard
+   what a user's calibration session would hand over instead (:mod:`benchmarks.estimated`): a chessboard
    stereo calibration and a press-fitted gel index, written beside the twin's files.
 2. The pipeline reads those files back (it never sees the truth), detects, matches (DTRC),
    triangulates, corrects refraction and reconstructs the skin surface of every frame.
@@ -107,7 +107,7 @@ def run_demo(out_dir: str | Path, *, design_name: str = "hexagon127", sigma2_mm2
     from twin.indenters import make_indenter
     from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press, write_run
-    from twin.estimated import sensor_setup
+    from benchmarks.estimated import sensor_setup
     from twin.truth import Truth
 
     out = Path(out_dir)

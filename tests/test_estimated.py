@@ -1,4 +1,4 @@
-"""twin.estimated: what a user's calibration session hands the pipeline, and its wiring into ``bench``."""
+"""benchmarks.estimated: what a user's calibration session hands the pipeline, and its wiring into ``bench``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.design import load_design
-from twin import estimated as est
+from benchmarks import estimated as est
 from twin.render import true_calibration
 
 

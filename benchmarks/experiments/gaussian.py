@@ -199,9 +199,9 @@ def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None
     frame with the unchanged pipeline and score it. Returns (cell row, radial bin centres, radial RMS
     profile vs CAD, the surface grid, distance from the tip), everything the summary and figure need.
     The frame's noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
-    ``setup`` (:class:`twin.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
+    ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
     given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``."""
-    from twin.estimated import sensor_setup
+    from benchmarks.estimated import sensor_setup
     from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press
 

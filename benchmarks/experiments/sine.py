@@ -202,9 +202,9 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None) -
     """One cell of the grid: press the sine ω = OMEGAS[k] rotated by ``yaw`` into ``design``, reconstruct
     the frame with the unchanged pipeline and score it; returns (cell row, surface grid). The frame's
     noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
-    ``setup`` (:class:`twin.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
+    ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
     given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``."""
-    from twin.estimated import sensor_setup
+    from benchmarks.estimated import sensor_setup
     from twin.simulate import press
 
     rng = stream_rng(seed, stream)
