@@ -90,9 +90,9 @@ def parse_sources(sources: str | Iterable[str] | None) -> tuple[str, ...]:
 
 
 def _rng(seed: int, stream: str) -> np.random.Generator:
-    import zlib
+    from benchmarks.registry import stream_rng
 
-    return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(stream.encode())])
+    return stream_rng(seed, stream)
 
 
 def draw_stack(design: SensorDesign, seed: int) -> dict[str, float]:
