@@ -2,7 +2,8 @@
 
 ::
 
-    stereotactip bench NAME|all|list [--quick] [--check] [--seed S] --out DIR [--param k=v] [--set key=v]
+    stereotactip bench NAME[,NAME...]|all|list [--quick] [--check] [--seed S] --out DIR [--param k=v] [--set key=v]
+                       [--calibration oracle|estimated] [--error-sources calibration,index,thickness]
     stereotactip sweep --experiment NAME --skin 0.5,1.0,1.5 --separation 1.80,2.54,3.54
                        --pattern hexagon,square,circular [--quick] --out DIR [--workers N | --cluster ADDRESS]
     stereotactip report DIR
@@ -56,21 +57,31 @@ def _bench(args: argparse.Namespace) -> int:
         raise OptionError("bench: --out DIR is required")
     # `all --quick` is the CI set: experiments without a quick variant (tag full-only) run in full runs only
     names = [n for n, e in exps.items() if not (args.quick and "full-only" in e.tags)] if args.name == "all" \
-        else [get(args.name).name]
+        else list(dict.fromkeys(get(n.strip()).name for n in args.name.split(",") if n.strip()))
+    if not names:
+        raise OptionError(f"bench {args.name!r}: no experiment named")
     overrides = _key_values(args.set, "--set")
     if overrides:  # validate once, before any long run
         from pipeline.design import load_design
 
         load_design("hexagon127").with_overrides(overrides)
     params = _key_values(args.param, "--param")
+    sources = None
+    if args.error_sources is not None:
+        from benchmarks.estimated import parse_sources
+
+        if args.calibration != "estimated":
+            raise OptionError("bench --error-sources: only with --calibration estimated")
+        sources = parse_sources(args.error_sources)
     out = Path(args.out)
     records = {}
     t0 = time.perf_counter()
     engine = _engine(args)
     for name in names:
         ctx = Context(out_dir=out, quick=args.quick, seed=args.seed, overrides=overrides, params=params,
-                      progress=not args.no_progress, engine=engine)
-        print(f"[bench] {name} ...", file=sys.stderr, flush=True)
+                      progress=not args.no_progress, engine=engine, calibration=args.calibration,
+                      error_sources=sources)
+        print(f"[bench] {name} ({args.calibration} calibration) ...", file=sys.stderr, flush=True)
         rec = execute(exps[name], ctx)
         records[name] = rec
         line = f"[bench] {name}: {rec['status']} in {rec['wall_time_s']:.1f} s"
@@ -154,7 +165,7 @@ def _report(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this package's subcommands to the top-level parser."""
     p = sub.add_parser("bench", help="run the paper's experiments (twin frames through the pipeline)")
-    p.add_argument("name", help="experiment name, 'all', or 'list'")
+    p.add_argument("name", help="experiment name, comma-separated names (patterns,gaussian), 'all', or 'list'")
     p.add_argument("--quick", action="store_true", help="reduced grid (the CI variant)")
     p.add_argument("--check", action="store_true", help="compare quick metrics with benchmarks/thresholds.toml")
     p.add_argument("--seed", type=int, default=0, help="root random seed (default 0)")
@@ -162,6 +173,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--param", action="append", metavar="KEY=VALUE", help="experiment knob override")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="design override, e.g. skin.thickness_mm=0.5")
+    p.add_argument("--calibration", choices=("oracle", "estimated"), default="oracle",
+                   help="what the pipeline is given: the twin's exact cameras, index and stack (oracle, default), "
+                        "or a chessboard calibration, a press-fitted index and a stack drawn within manufacturing "
+                        "tolerances (estimated; cached in OUT/calibration_cache)")
+    p.add_argument("--error-sources", metavar="LIST", default=None,
+                   help="with --calibration estimated: keep only these error sources, comma-separated subset of "
+                        "calibration,index,thickness (an ablation; default all)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_engine_options(p)
     p.set_defaults(func=_bench)

@@ -92,6 +92,9 @@ class Result:
         The paper's qualitative claims, as this run sees them.
     designs : list
         ``SensorDesign`` objects the experiment used (the first is "the" design in the JSON).
+    setups : list of dict
+        Provenance of what the pipeline was given per design (``benchmarks.estimated.SensorSetup.provenance``:
+        calibration mode, drawn stack deviations, fitted index); recorded under ``calibration`` in the JSON.
     """
 
     metrics: dict[str, tuple[float, str]] = field(default_factory=dict)
@@ -100,6 +103,7 @@ class Result:
     notes: list[str] = field(default_factory=list)
     findings: list[Finding] = field(default_factory=list)
     designs: list[Any] = field(default_factory=list)
+    setups: list[dict[str, Any]] = field(default_factory=list)
 
     def metric(self, name: str, value: float, unit: str) -> None:
         self.metrics[name] = (float(value), unit)
@@ -137,6 +141,13 @@ class Context:
     engine : benchmarks.executor.Engine or None
         Where an experiment made of independent cells runs them (:func:`benchmarks.executor.run_cells`);
         None: local processes on all cores, or inline inside a sweep cell.
+    calibration : {"oracle", "estimated"}
+        What the pipeline is told about the sensor (:mod:`benchmarks.estimated`): the twin's exact cameras,
+        index and stack, or a chessboard calibration, a press-fitted index and a drawing the built
+        stack deviates from within tolerances.
+    error_sources : tuple of str or None
+        With ``calibration="estimated"``: the error sources kept (subset of ``benchmarks.estimated.SOURCES``;
+        None: all), for an ablation.
     """
 
     out_dir: Path
@@ -147,6 +158,8 @@ class Context:
     progress: bool = True
     base_design: str | None = None
     engine: Any = None
+    calibration: str = "oracle"
+    error_sources: tuple[str, ...] | None = None
 
     def rng(self, stream: str = "") -> np.random.Generator:
         """An independent generator for a named stream, reproducible from ``seed`` alone."""
@@ -165,6 +178,15 @@ class Context:
         if self.base_design is not None:
             return [self.design()]
         return [self.design(n) for n in names]
+
+    def sensor_setup(self, design):
+        """The twin's sensor and what the pipeline is given for ``design`` (:func:`benchmarks.estimated.sensor_setup`
+        with this context's calibration mode, error sources and seed). The estimated chessboard calibration
+        and index fit are cached under ``out_dir/calibration_cache`` per design and seed."""
+        from benchmarks.estimated import sensor_setup
+
+        return sensor_setup(design, mode=self.calibration, seed=self.seed, sources=self.error_sources,
+                            cache_dir=self.out_dir / "calibration_cache", progress=self.progress)
 
     def param(self, name: str, full: Any, quick: Any | None = None) -> Any:
         """``params[name]`` if given, else ``quick`` (when ``self.quick`` and given) else ``full``."""

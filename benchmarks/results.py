@@ -159,6 +159,9 @@ def build_record(exp: Experiment, ctx: Context, result: Result | None, *, status
         "paper": {k: {"value": v.value, "unit": v.unit, "text": v.text} for k, v in exp.paper.items()},
         "params": dict(ctx.params),
         "overrides": dict(ctx.overrides),
+        "calibration": {"mode": ctx.calibration,
+                        "error_sources": list(ctx.error_sources) if ctx.error_sources is not None else None,
+                        "setups": list(result.setups) if result is not None else []},
         "error": error,
     }
     return _jsonable(record)

@@ -25,6 +25,7 @@ centre, tap plane, sensor back end, seed, scan step, the sensor design's content
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -89,6 +90,7 @@ class TapJob:
     path: str                           # where the finished tap is written
 
     step_mm: float = 15.0               # scan step the centre came from
+    setup: Any = None                   # benchmarks.estimated.SensorSetup of the 'twin' back end (None: oracle)
 
     def origin_mm(self) -> np.ndarray:
         return np.array([self.centre_mm[0], self.centre_mm[1], self.tap_z_mm])
@@ -100,6 +102,8 @@ class TapJob:
         inputs = {"region": self.region, "index": self.index, "centre_mm": [round(v, 9) for v in self.centre_mm],
                   "tap_z_mm": round(self.tap_z_mm, 9), "sensor": self.sensor, "seed": self.seed,
                   "step_mm": round(self.step_mm, 9), "design": to_dict(_design()), "code": TAP_CODE_VERSION}
+        if self.setup is not None and self.setup.mode != "oracle":
+            inputs["calibration"] = self.setup.provenance
         return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()
 
 
@@ -161,27 +165,30 @@ def _twin_tap(job: TapJob) -> tuple[np.ndarray, np.ndarray]:
     origin_mm : (3,) global position of the undeformed skin centre at the bottom of the tap (mm)
     """
     try:
-        from twin import indenters, render, simulate
+        from twin import indenters, simulate
         from twin.physics import max_depth_mm
         from pipeline.runner import Reconstructor
     except ImportError as exc:
         raise TerrainScanError(f"sensor 'twin' needs the twin's physics/renderer ({exc}); use --sensor ideal") from None
     from twin.terrain import load_terrain_map, tap_indenter
 
-    design = _design()
+    from benchmarks.estimated import sensor_setup
+
+    # the twin presses the sensor as built; the pipeline is given the drawing and the setup's calibration
+    setup = job.setup if job.setup is not None else sensor_setup(_design())
+    built, design = setup.twin_design, setup.design
     tmap = load_terrain_map()
     # indenter surface at the bottom of the tap (sensor frame, +z toward the object); depth is how far
     # the relief's highest point under the sensor is pushed past the rest skin
     bottom = tap_indenter(tmap, job.centre_mm, skin_z_mm=job.tap_z_mm, radius_mm=design.gel.radius_mm + 2.0,
                           spacing_mm=0.2)
     want = max(0.0, -float(np.nanmin(bottom.z_mm)))
-    depth = min(want, max_depth_mm(design))
+    depth = min(want, max_depth_mm(built))
     rest_surface = HeightMap(bottom.x_mm, bottom.y_mm, bottom.z_mm + want)
     indenter = indenters.make_indenter("terrain", height_map=rest_surface)
     rng = np.random.default_rng(job.seed)
-    pairs = simulate.press(design, indenter, depth_mm=depth, rng=rng)     # [(StereoFrame, Truth)]
-    calib = render.true_calibration(design)
-    rec = Reconstructor(design, calib)
+    pairs = simulate.press(built, indenter, depth_mm=depth, rng=rng)      # [(StereoFrame, Truth)]
+    rec = Reconstructor(design, setup.calib, **setup.reconstructor_kw())
     last = [rec.process(frame) for frame, _truth in pairs][-1]
     if last.skin is None:
         raise TerrainScanError(f"tap {job.region}#{job.index}: too few markers reconstructed")
@@ -401,7 +408,7 @@ def _commit() -> str:
 
 def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", sensor: str = "ideal",
              quick: bool = False, workers: int | None = None, tap_z_mm: float = 0.0, seed: int = 0,
-             progress: bool = True, engine=None) -> dict[str, Any]:
+             progress: bool = True, engine=None, setup=None) -> dict[str, Any]:
     """Run (or resume) the terrain scan and write every output; returns the ``terrain.json`` dict.
 
     ``regions``: ``"all"``, a comma-separated string or a list of region keys. ``quick``: the two
@@ -410,6 +417,7 @@ def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", senso
     ``engine``: where the taps run instead (:mod:`benchmarks.executor`, e.g. a Dask cluster whose
     workers share ``out_dir``: each tap writes its own file). A tap that fails does not stop the others;
     the scan then raises naming the failed taps, and a rerun computes only those.
+    ``setup``: the :class:`benchmarks.estimated.SensorSetup` of the 'twin' back end (None: the twin's exact sensor).
     """
     from twin.terrain import REGIONS, load_terrain_map, region
 
@@ -430,6 +438,8 @@ def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", senso
         raise TerrainScanError(f"--tap-z {tap_z_mm!r}: must be in [{TAP_Z_RANGE_MM[0]:g}, {TAP_Z_RANGE_MM[1]:g}) mm "
                                "(from the ocean floor to below the 8 mm approach height)")
     jobs = plan_jobs(keys, out, sensor=sensor, tap_z_mm=tap_z_mm, seed=seed, max_taps=4 if quick else None)
+    if setup is not None and sensor == "twin":
+        jobs = {k: [dataclasses.replace(j, setup=setup) for j in js] for k, js in jobs.items()}
     todo = [j for js in jobs.values() for j in js if not _tap_is_done(j)]
     n_total = sum(len(js) for js in jobs.values())
     n_reused = n_total - len(todo)

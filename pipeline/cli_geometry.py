@@ -136,11 +136,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def _calibrate_refraction(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from pipeline.design import load_design
-    from pipeline.refraction import fit_refractive_index
-    from pipeline.runner import Reconstructor
+    from pipeline.refraction import RefractionError, fit_index_from_press
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)
@@ -149,29 +146,13 @@ def _calibrate_refraction(args: argparse.Namespace) -> int:
     if len(frames) % len(steps):
         raise CliInputError(f"{args.sequence}: {len(frames)} frames is not a multiple of the {len(steps)} steps "
                             f"(one frame per step, repeated trials)")
-    rec = Reconstructor(design, calib, refraction="exact")
-    true_dz, app_dz = [], []
-    n_trials = len(frames) // len(steps)
-    for trial in range(n_trials):
-        clouds = []
-        for k in tqdm(range(len(steps)), desc=f"trial {trial + 1}/{n_trials}", leave=False):
-            res = rec.process(frames[trial * len(steps) + k])
-            clouds.append(res.apparent)
-        ref = clouds[0]
-        for step, cloud in zip(steps, clouds):
-            common, i_ref, i_cur = np.intersect1d(ref.ids, cloud.ids, return_indices=True)
-            if len(common) == 0:
-                print(f"trial {trial + 1}, step {step:g} mm: no markers in common with the first step (skipped)")
-                continue
-            true_dz.append(np.full(len(common), step - steps[0]))
-            # the press moves the board toward the cameras (-z): apparent displacement z'_0 - z'
-            app_dz.append(ref.xyz_mm[i_ref, 2] - cloud.xyz_mm[i_cur, 2])
-    used_steps = {float(t[0]) for t in true_dz if len(t)}
-    if len(used_steps) < 2:
-        raise CliInputError(f"{args.sequence}: markers were reconstructed at fewer than 2 distinct steps; "
-                            f"cannot fit a refractive index")
-    fit = fit_refractive_index(np.concatenate(true_dz), np.concatenate(app_dz))
-    print(f"{n_trials} trial(s) x {len(steps)} steps: {fit.summary()}")
+    try:
+        fit = fit_index_from_press(frames, steps, design, calib)
+    except RefractionError as exc:
+        raise CliInputError(f"{args.sequence}: {exc}") from None
+    print(f"{len(frames) // len(steps)} trial(s) x {len(steps)} steps: {fit.summary()}")
+    print(f"use --refraction linear --n-gel {fit.linear.n:.4f} or --refraction exact --n-gel {fit.n_gel_exact:.4f} "
+          f"with reconstruct")
     return 0
 
 
@@ -205,7 +186,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="calib.yaml", help="output calibration file (OpenCV YAML)")
     p.set_defaults(func=_calibrate)
 
-    p = sub.add_parser("calibrate-refraction", help="fit the effective refractive index from a skin-less press")
+    p = sub.add_parser("calibrate-refraction", help="fit the refractive index (linear and exact models) from a skin-less press")
     p.add_argument("sequence", metavar="SEQUENCE", help="folder of frames, one per step (trials repeated in order)")
     p.add_argument("--calib", required=True, help="stereo calibration YAML")
     p.add_argument("--design", default="hexagon127")

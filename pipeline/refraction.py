@@ -35,7 +35,7 @@ from pipeline.triangulation import camera_poses, closest_points, matched_rays
 from pipeline.types import MarkerCloud, MarkerMatches, StereoCalibration
 
 __all__ = ["RefractionError", "snell", "refract_stack_rays", "correct_exact", "correct_linear",
-           "project_through_stack", "fit_refractive_index", "RefractionFit"]
+           "project_through_stack", "fit_refractive_index", "fit_index_from_press", "PressFit", "RefractionFit"]
 
 N_AIR = 1.0  # the paper's n_air = 1.00027 changes depths by < 0.03 %; the design's indices are relative to air
 _BISECT_ITERS = 64  # halves the ray-parameter bracket [0, 1) to 2^-64: far below double precision of the result
@@ -329,3 +329,93 @@ def fit_refractive_index(true_dz_mm: np.ndarray, apparent_dz_mm: np.ndarray) -> 
     r2 = 1.0 - float(res @ res) / ss_tot if ss_tot > 0 else float("nan")
     return RefractionFit(n=n, intercept=float(intercept), r2=r2, residual_rms_mm=float(np.sqrt(np.mean(res**2))),
                          slope_with_intercept=float(slope), n_points=int(len(t)))
+
+
+@dataclass(frozen=True)
+class PressFit:
+    """Indices fitted from a skin-less board press.
+
+    ``linear`` the effective index of the paper's linear model (slope of true vs apparent displacement,
+    :func:`fit_refractive_index`; wide-angle markers make it exceed the gel's index by the error term E);
+    ``n_gel_exact`` the gel index for which :func:`correct_exact` reproduces the robot's displacements
+    best (least squares over every marker and step); ``exact_residual_rms_mm`` the RMS displacement
+    error of the exact correction with that index.
+    """
+
+    linear: RefractionFit
+    n_gel_exact: float
+    exact_residual_rms_mm: float
+
+    def summary(self) -> str:
+        return (f"linear model: {self.linear.summary()}\nexact model: n_gel = {self.n_gel_exact:.4f} "
+                f"(displacement residual RMS {self.exact_residual_rms_mm:.4f} mm)")
+
+
+def fit_index_from_press(frames, steps_mm, design: SensorDesign, calib: StereoCalibration, *,
+                         progress: bool = True, echo=print) -> PressFit:
+    """Indices from a skin-less press on a marker board (what ``calibrate-refraction`` runs).
+
+    ``frames`` are the stereo frames of one or more trials, ``len(steps_mm)`` frames per trial in step
+    order (robot press depths, mm). Each frame is matched by a :class:`pipeline.runner.Reconstructor`;
+    per marker seen in both, the displacement from the trial's first step is paired with the robot's.
+    The apparent (straight-ray) displacements give the linear model's effective index; the exact
+    correction's displacements, as a function of the gel index, give the exact model's gel index.
+
+    Raises
+    ------
+    RefractionError
+        ``frames`` is not a whole number of trials, or markers were reconstructed at fewer than two
+        distinct steps.
+    """
+    from scipy.optimize import minimize_scalar  # noqa: PLC0415
+    from tqdm import tqdm  # noqa: PLC0415
+
+    from pipeline.runner import Reconstructor  # noqa: PLC0415 (runner imports this module)
+
+    frames = list(frames)
+    steps = [float(s) for s in steps_mm]
+    if not steps or not frames or len(frames) % len(steps):
+        raise RefractionError(f"{len(frames)} frames is not a whole number of trials of {len(steps)} steps "
+                              f"(one frame per step, repeated trials)")
+    rec = Reconstructor(design, calib, refraction="exact")
+    true_dz, app_dz, pairs = [], [], []   # pairs: (reference matches, matches, robot displacement)
+    n_trials = len(frames) // len(steps)
+    for trial in range(n_trials):
+        results = []
+        for k in tqdm(range(len(steps)), desc=f"trial {trial + 1}/{n_trials}", leave=False, disable=not progress):
+            results.append(rec.process(frames[trial * len(steps) + k]))
+        ref = results[0].apparent
+        for step, res in zip(steps, results):
+            cloud = res.apparent
+            common, i_ref, i_cur = np.intersect1d(ref.ids, cloud.ids, return_indices=True)
+            if len(common) == 0:
+                echo(f"trial {trial + 1}, step {step:g} mm: no markers in common with the first step (skipped)")
+                continue
+            true_dz.append(np.full(len(common), step - steps[0]))
+            # the press moves the board toward the cameras (-z): apparent displacement z'_0 - z'
+            app_dz.append(ref.xyz_mm[i_ref, 2] - cloud.xyz_mm[i_cur, 2])
+            if step != steps[0]:
+                pairs.append((_subset(results[0].matches, common), _subset(res.matches, common), step - steps[0]))
+    if len({float(t[0]) for t in true_dz if len(t)}) < 2 or not pairs:
+        raise RefractionError("markers were reconstructed at fewer than 2 distinct steps; cannot fit a refractive index")
+    linear = fit_refractive_index(np.concatenate(true_dz), np.concatenate(app_dz))
+
+    def residuals(n: float) -> np.ndarray:
+        out = []
+        for m0, m, dz in pairs:
+            z0 = correct_exact(m0, calib, design, n_gel=n).xyz_mm[:, 2]
+            z = correct_exact(m, calib, design, n_gel=n).xyz_mm[:, 2]
+            out.append((z0 - z) - dz)
+        return np.concatenate(out)
+
+    best = minimize_scalar(lambda n: float(np.mean(residuals(n) ** 2)), bounds=(1.0, 3.0), method="bounded",
+                           options={"xatol": 1e-6})
+    n_exact = float(best.x)
+    return PressFit(linear, n_exact, float(np.sqrt(np.mean(residuals(n_exact) ** 2))))
+
+
+def _subset(matches: MarkerMatches, ids: np.ndarray) -> MarkerMatches:
+    """The matches of ``ids`` (all present in ``matches``), in the order of ``ids``."""
+    pos = {int(i): k for k, i in enumerate(matches.ids)}
+    sel = np.array([pos[int(i)] for i in ids], dtype=np.int64)
+    return MarkerMatches(np.asarray(ids), matches.left_px[sel], matches.right_px[sel])

@@ -2,8 +2,10 @@
 
 1. The twin presses a Gaussian indenter (h = 5 mm, σ² = 10 mm²) into the default skin module
    (hexagon127) at the paper's 1 mm/s, capturing one stereo frame per millimetre, and writes frames
-   (PNG), truth (NPZ) and its true calibration (OpenCV YAML) — exactly what a real sensor + a
-   calibration session would hand over.
+   (PNG), truth (NPZ) and its true calibration (OpenCV YAML). With ``--calibration estimated`` the
+   twin's stack deviates from the drawing within manufacturing tolerances and the pipeline is given
+   what a user's calibration session would hand over instead (:mod:`benchmarks.estimated`): a chessboard
+   stereo calibration and a press-fitted gel index, written beside the twin's files.
 2. The pipeline reads those files back (it never sees the truth), detects, matches (DTRC),
    triangulates, corrects refraction and reconstructs the skin surface of every frame.
 3. The reconstruction is scored against the twin's truth (marker centres and deformed outer skin) and
@@ -94,7 +96,8 @@ def _figure(path: Path, design, frame, res, truth) -> None:
 
 
 def run_demo(out_dir: str | Path, *, design_name: str = "hexagon127", sigma2_mm2: float = 10.0,
-             depth_mm: float = 5.0, n_frames: int = 5, seed: int = 0, progress: bool = True) -> dict:
+             depth_mm: float = 5.0, n_frames: int = 5, seed: int = 0, progress: bool = True,
+             calibration: str = "oracle") -> dict:
     """Simulate a press, reconstruct it with the pipeline from the files alone, score it; returns the summary."""
     import cv2
 
@@ -104,26 +107,36 @@ def run_demo(out_dir: str | Path, *, design_name: str = "hexagon127", sigma2_mm2
     from twin.indenters import make_indenter
     from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press, write_run
+    from benchmarks.estimated import sensor_setup
     from twin.truth import Truth
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     design = load_design(design_name)
+    if calibration != "oracle":
+        print(f"[0/3] {calibration} calibration: chessboard pairs and a skin-less press of a sensor built within "
+              f"tolerances (cached in {out / 'calibration_cache'}) ...", flush=True)
+    setup = sensor_setup(design, mode=calibration, seed=seed, cache_dir=out / "calibration_cache", progress=progress)
     indenter = make_indenter("gaussian", sigma2=sigma2_mm2)
     t0 = time.perf_counter()
     print(f"[1/3] twin: pressing a Gaussian (σ²={sigma2_mm2:g} mm²) {depth_mm:g} mm into {design.name} "
           f"({design.marker_count} markers), {n_frames} frames ...", flush=True)
     # the Gaussian sits on the sensor axis: the axis contact mesh keeps the skin's faces out of its cap
-    run = press(design, indenter, depth_mm, n_frames=n_frames, rng=np.random.default_rng(seed), progress=progress,
+    run = press(setup.twin_design, indenter, depth_mm, n_frames=n_frames, rng=np.random.default_rng(seed), progress=progress,
                 mesh=AXIS_CONTACT_MESH)
-    twin_dir = write_run(out / "twin", design, indenter, run, extra_meta={"seed": seed, "depth_mm": depth_mm})
+    twin_dir = write_run(out / "twin", setup.twin_design, indenter, run, extra_meta={"seed": seed, "depth_mm": depth_mm})
     t_twin = time.perf_counter() - t0
 
-    print(f"[2/3] pipeline: reconstructing the frames in {twin_dir} with {twin_dir / 'calib.yaml'} ...", flush=True)
-    calib = StereoCalibration.load_yaml(twin_dir / "calib.yaml")
+    calib_path = twin_dir / "calib.yaml"
+    if setup.mode != "oracle":
+        calib_path = out / "calib_estimated.yaml"
+        setup.calib.save_yaml(calib_path)
+    print(f"[2/3] pipeline: reconstructing the frames in {twin_dir} with {calib_path}"
+          + (f" and n_gel = {setup.n_gel:.4f}" if setup.n_gel is not None else "") + " ...", flush=True)
+    calib = StereoCalibration.load_yaml(calib_path)
     files = sorted(twin_dir.glob("frame_*.png"))
     frames = [StereoFrame(cv2.imread(str(p)), index=i, timestamp_s=float(i), source=str(p)) for i, p in enumerate(files)]
-    rec = Reconstructor(design, calib, refraction="exact", with_height_map=True)
+    rec = Reconstructor(design, calib, refraction="exact", with_height_map=True, **setup.reconstructor_kw())
     results = []
     t1 = time.perf_counter()
     reconstruct(frames, rec, out / "pipeline", progress=progress, echo=lambda s: None,
@@ -152,7 +165,7 @@ def run_demo(out_dir: str | Path, *, design_name: str = "hexagon127", sigma2_mm2
               "pipeline against the twin's own markers and skin, not the twin against the indenter")
     _figure(out / "demo.png", design, frames[-1], results[-1], truths[-1])
     doc = {"design": design.name, "indenter": {"name": "gaussian", "sigma2_mm2": sigma2_mm2, "h_mm": 5.0},
-           "depth_mm": depth_mm, "seed": seed, "frames": scores, "twin_invalid_frames": n_bad, "twin_s": t_twin, "pipeline_s": t_pipe,
+           "depth_mm": depth_mm, "seed": seed, "calibration": setup.provenance, "frames": scores, "twin_invalid_frames": n_bad, "twin_s": t_twin, "pipeline_s": t_pipe,
            "units": {"*_mm": "mm", "*_ms": "ms", "*_s": "s"}, "pipeline_summary": str(out / "pipeline" / "summary.json")}
     from pipeline.atomic import atomic_write_json
 
@@ -164,7 +177,7 @@ def run_demo(out_dir: str | Path, *, design_name: str = "hexagon127", sigma2_mm2
 
 def _cmd(args: argparse.Namespace) -> int:
     run_demo(args.out, design_name=args.design, sigma2_mm2=args.sigma2, depth_mm=args.depth,
-             n_frames=args.frames, seed=args.seed, progress=not args.quiet)
+             n_frames=args.frames, seed=args.seed, progress=not args.quiet, calibration=args.calibration)
     return 0
 
 
@@ -176,5 +189,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--depth", type=float, default=5.0, help="press depth in mm (default 5)")
     p.add_argument("--frames", type=int, default=5, help="frames captured during the press (default 5)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--calibration", choices=("oracle", "estimated"), default="oracle",
+                   help="what the pipeline is given: the twin's exact calibration, index and stack (oracle, default) "
+                        "or a chessboard calibration and press-fitted index of a stack built within tolerances")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd)

@@ -31,3 +31,29 @@ def test_demo_end_to_end(tmp_path, capsys):
                  "pipeline/summary.json", "pipeline/heightmap_0000.npz", "pipeline/surface_0000.stl"):
         assert (out / name).is_file(), name
     assert "127/127 markers" in capsys.readouterr().out
+
+
+# With a user's calibration (twin.estimated, seed 0: stack built 0.099 mm thinner gel, +0.006 mm acrylic,
+# n +0.011) the marker RMS was 0.084-0.087 mm over the 5 mm press (oracle 0.064-0.067 mm). The bound: the
+# oracle's 0.2 mm plus the largest camera shift a build within tolerance makes (0.2 + 0.1 mm of stack).
+ESTIMATED_MARKER_RMS_TOL_MM = MARKER_RMS_TOL_MM + 0.3
+
+
+@pytest.mark.slow
+@pytest.mark.physics
+@pytest.mark.render
+def test_demo_with_an_estimated_calibration(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--depth", "2", "--frames", "1", "--quiet",
+                 "--calibration", "estimated"]) == 0
+    doc = json.loads((out / "demo.json").read_text())
+    cal = doc["calibration"]
+    assert cal["mode"] == "estimated" and cal["sources"] == ["calibration", "index", "thickness"]
+    # the twin built (and wrote the truth of) the perturbed stack; the pipeline got the estimates
+    assert cal["true_stack"]["gel_thickness_mm"] != cal["assumed_stack"]["gel_thickness_mm"]
+    assert abs(cal["index"]["n"] - cal["true_stack"]["gel_n"]) < 0.005
+    assert (out / "calib_estimated.yaml").is_file() and (out / "calibration_cache").is_dir()
+    (frame,) = doc["frames"]
+    assert frame["markers_matched"] == frame["markers_expected"] == 127
+    assert frame["marker_rms_mm"] < ESTIMATED_MARKER_RMS_TOL_MM
+    assert "calib_estimated.yaml and n_gel = " in capsys.readouterr().out

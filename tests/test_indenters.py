@@ -21,6 +21,7 @@ def _terrain_hm():
 
 
 def test_registry_builds_every_indenter_with_a_closed_mesh():
+    assert {"gaussian", "sine", "letter", "terrain"} <= set(list_indenters())
     for name in list_indenters():
         ind = make_indenter(name, height_map=_terrain_hm()) if name == "terrain" else make_indenter(name)
         x, y, z = ind.grid(0.5)

@@ -60,6 +60,7 @@ def test_fermat_bruteforce_matches_newton():
     C = camera_centre(DESIGN, "left")
     P = _gel_points(rng, 12)
     P = P[P[:, 2] > DESIGN.gel_acrylic_z_mm + 0.05]   # through both interfaces
+    assert len(P) >= 6                                 # the loop below checks something
     paths = solve_paths(C, P, STACK)
     for i, p in enumerate(P):
         # start from the straight line C -> P

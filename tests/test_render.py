@@ -223,6 +223,7 @@ def test_per_vertex_refraction_matches_ray_traced_reference(clean_renderer):
     picks = [int(np.argmax(layers == 0)), int(np.argmax(layers == 3)), 0, int(np.argmax(layers == 6)) + 9]
     half, pad, ss = 15, 5, 4                        # window half-size, blur padding, sub-samples per axis
     sub = (np.arange(ss) + 0.5) / ss - 0.5
+    checked = 0
     for side, img in (("left", frame.left), ("right", frame.right)):
         shade = clean_renderer.shading_map(side)
         truth = project_exact(P, DESIGN, side)
@@ -246,6 +247,8 @@ def test_per_vertex_refraction_matches_ray_traced_reference(clean_renderer):
             c_got, m_got = _bright_moments(_grey(img[y0:y0 + size, x0:x0 + size])[sl], x0 + pad, y0 + pad)
             assert np.linalg.norm(c_got - c_ref) < TRACE_CENTROID_TOL_PX, (side, m, c_got - c_ref)
             assert abs(m_got / m_ref - 1.0) < TRACE_AREA_TOL, (side, m, m_got / m_ref)
+            checked += 1
+    assert checked >= 6, f"only {checked} of {2 * len(picks)} marker windows lie inside the images"
 
 
 # ----- boards ------------------------------------------------------------------------------

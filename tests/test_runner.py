@@ -75,6 +75,8 @@ def test_linear_refraction_relative_to_first_frame():
     assert dz_err[central].max() < 0.04 + E2E_TOL_MM
 
 
+@pytest.mark.xfail(strict=True, reason="DTRC (pipeline/dtrc.py) identifies no marker at all when part of the "
+                   "pattern is hidden: 0 of the 67 shown markers here (and 0 of 112 with only x < -9 mm hidden)")
 def test_half_occluded_frame_gives_partial_result():
     design = load_design("hexagon127")
     calib = nominal_calibration(design)
@@ -84,10 +86,11 @@ def test_half_occluded_frame_gives_partial_result():
     res = Reconstructor(design, calib).process(frame)
     hidden = np.flatnonzero(~shown)
     assert set(hidden.tolist()) <= set(res.unmatched_ids.tolist())
-    if len(res.corrected):
-        err = np.linalg.norm(res.corrected.xyz_mm - truth[res.corrected.ids], axis=1)
-        assert err.max() < E2E_TOL_MM  # whatever is matched is matched correctly
     assert "unmatched ids" in res.summary(design)
+    # a partial result: most shown markers come back, each in the right place
+    assert len(res.corrected) >= 0.8 * shown.sum(), f"{len(res.corrected)} of {shown.sum()} shown markers"
+    err = np.linalg.norm(res.corrected.xyz_mm - truth[res.corrected.ids], axis=1)
+    assert err.max() < E2E_TOL_MM
 
 
 @pytest.mark.parametrize("value", [0, 255])

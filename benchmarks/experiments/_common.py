@@ -18,6 +18,7 @@ __all__ = [
     "gaussian_curvature_profile",
     "reconstruct",
     "twin_calibration",
+    "calibration_note",
     "make_indenter",
     "surface_grid",
 ]
@@ -89,6 +90,29 @@ def twin_calibration(design):
     from twin.render import true_calibration
 
     return true_calibration(design)
+
+
+def calibration_note(setups) -> str:
+    """One note saying what the pipeline was given (oracle or estimated, with the drawn deviations)."""
+    setups = list(setups)
+    if not setups or all(s.mode == "oracle" for s in setups):
+        return ("Calibration: oracle — the pipeline is given the twin's exact cameras, refractive index and stack "
+                "(a best case; --calibration estimated gives a user's chessboard calibration, press-fitted index "
+                "and a stack within manufacturing tolerances).")
+    parts = []
+    for s in setups:
+        p = s.provenance
+        d = p["drawn"]
+        cal = p["calibration"]
+        idx = p["index"]
+        parts.append(f"{s.design.name}: sources {'+'.join(p['sources'])}; built stack gel "
+                     f"{d['gel_thickness_mm']:+.3f} mm, acrylic {d['acrylic_thickness_mm']:+.3f} mm, gel n "
+                     f"{d['gel_n']:+.4f} vs the drawing; calibration {cal['route']}"
+                     + (f" (RMS {cal['rms_px']:.3f} px, baseline error {cal['baseline_error_mm']:+.3f} mm)"
+                        if "rms_px" in cal else "")
+                     + f"; index {idx['route']}" + (f" n = {idx['n']:.4f} (true {p['true_stack']['gel_n']:.4f})"
+                                                    if "n" in idx else ""))
+    return "Calibration: estimated — " + "; ".join(parts) + "."
 
 
 def reconstruct(design, calib, frames, **kw: Any):

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks.experiments._common import (gaussian_curvature_profile, make_indenter, radial_rms, rms, run_press_cells,
-                                            surface_grid, twin_calibration, reconstruct)
+                                            surface_grid, calibration_note, reconstruct)
 from benchmarks.registry import Context, Finding, Result, register, stream_rng
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -71,8 +71,9 @@ def run(ctx: Context) -> Result:
     yaws = [float(y) for y in ctx.param("yaws", YAWS_DEG, quick=(0.0,))]
     designs = ctx.designs([SKIN_DESIGNS[t] for t in skins])
     sharpest = min(sigma2s)
-    out = Result(designs=designs)
-    jobs = [(design, s2, yaw, ctx.seed, f"gaussian/{design.name}/{s2:.4f}/{yaw:g}")
+    setups = {d.name: ctx.sensor_setup(d) for d in designs}   # estimated calibration: once per design
+    out = Result(designs=designs, setups=[st.provenance for st in setups.values()])
+    jobs = [(design, s2, yaw, ctx.seed, f"gaussian/{design.name}/{s2:.4f}/{yaw:g}", setups[design.name])
             for design in designs for s2 in sigma2s for yaw in yaws]
     cells = run_press_cells(ctx, out, press_cell, jobs, desc="gaussian", params=lambda j: (
         {"design": j[0].name, "sigma2_mm2": j[1], "yaw_deg": j[2]}, f"{j[0].name} σ²={j[1]:.3g} yaw {j[2]:g}"))
@@ -148,7 +149,7 @@ def run(ctx: Context) -> Result:
                                 None if not np.isfinite(corr) else bool(corr > 0.5)))
     out.notes.append("Error vs CAD over the footprint (indenter below the rest skin plane z = 0); error vs true "
                      "skin over the whole pattern; reconstruction via pipeline.surface.height_map on a 0.5 mm grid.")
-    out.notes.append("Calibration: the twin's true cameras; refraction: the Reconstructor's default model.")
+    out.notes.append(calibration_note(setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
 
     with paper_style() as plt:
         fig, axes = plt.subplots(2, len(sigma2s), figsize=(PAGE_IN, 3.6), squeeze=False)
@@ -193,20 +194,24 @@ def _e(g: dict, which: str) -> np.ndarray:
     return g["z_rec"] - g["z_skin"]
 
 
-def press_cell(design, s2: float, yaw: float, seed: int, stream: str) -> tuple:
+def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None) -> tuple:
     """One cell of the grid: press the σ² Gaussian rotated by ``yaw`` into ``design``, reconstruct the
     frame with the unchanged pipeline and score it. Returns (cell row, radial bin centres, radial RMS
     profile vs CAD, the surface grid, distance from the tip), everything the summary and figure need.
-    The frame's noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`)."""
+    The frame's noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
+    ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
+    given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``."""
+    from benchmarks.estimated import sensor_setup
     from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press
 
     rng = stream_rng(seed, stream)
-    calib = twin_calibration(design)
+    setup = setup if setup is not None else sensor_setup(design)   # None: oracle (the twin's exact sensor)
+    built, design, calib = setup.twin_design, setup.design, setup.calib
     radius = design.pattern_radius_mm() - design.pattern.separation_mm / 2
     ind = make_indenter("gaussian", h_mm=H_MM, sigma2_mm2=s2)
-    frame, truth = press(design, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng, mesh=AXIS_CONTACT_MESH)[-1]
-    fr = reconstruct(design, calib, [frame])[0]
+    frame, truth = press(built, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng, mesh=AXIS_CONTACT_MESH)[-1]
+    fr = reconstruct(design, calib, [frame], **setup.reconstructor_kw())[0]
     g = surface_grid(fr.skin, truth, radius)
     tip = np.nanargmin(np.where(np.isfinite(g["z_ind"]), g["z_ind"], np.inf))
     r = np.hypot(g["x"] - g["x"][tip], g["y"] - g["y"][tip])

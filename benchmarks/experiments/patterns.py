@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from benchmarks.experiments._common import identity_correct, reconstruct, twin_calibration
+from benchmarks.experiments._common import calibration_note, identity_correct, reconstruct
 from benchmarks.registry import Context, Finding, PaperValue, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -67,14 +67,18 @@ def run(ctx: Context) -> Result:
 
     out = Result()
     rows, panels = [], []
+    setups = []
     for design in ctx.bar(ctx.designs(DESIGNS), desc="patterns"):
-        truth = RestTruth.of(design)
-        renderer = StereoRenderer(design, rng=ctx.rng(f"patterns/{design.name}"))
+        setup = ctx.sensor_setup(design)   # the twin renders setup.twin_design; the pipeline gets setup.design
+        setups.append(setup)
+        out.setups.append(setup.provenance)
+        truth = RestTruth.of(setup.twin_design)
+        renderer = StereoRenderer(setup.twin_design, rng=ctx.rng(f"patterns/{design.name}"))
         frame = renderer.render_markers(truth.marker_xyz_mm, truth.marker_axis)
         del renderer
         gc.collect()  # one headless GL context at a time
-        calib = twin_calibration(design)
-        fr = reconstruct(design, calib, [frame])[0]  # truth is not passed: the pipeline sees pixels only
+        # truth is not passed: the pipeline sees pixels only
+        fr = reconstruct(setup.design, setup.calib, [frame], **setup.reconstructor_kw())[0]
         ids = np.asarray(fr.corrected.ids)
         n = design.marker_count
         tmap = {int(i): k for k, i in enumerate(np.asarray(truth.marker_ids))}
@@ -99,7 +103,7 @@ def run(ctx: Context) -> Result:
     out.metric("identity_correct_fraction_min", min(r["identity_correct_fraction"] for r in rows), "1")
     out.metric("localisation_rms_mm_max", _nanmax([r["localisation_rms_mm"] for r in rows]), "mm")
     out.metric("localisation_max_mm", _nanmax([r["localisation_max_mm"] for r in rows]), "mm")
-    out.notes.append("Calibration: the twin's true cameras (camera-calibration scores the chessboard route).")
+    out.notes.append(calibration_note(setups))
     out.findings.append(Finding(
         "every marker of every pattern is matched and localised",
         "; ".join(f"{r['design']}: {r['matched']}/{r['markers']} matched, "

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from benchmarks.experiments._common import twin_calibration
+from benchmarks.experiments._common import calibration_note
 from benchmarks.registry import Context, Finding, PaperValue, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -80,14 +80,14 @@ def run(ctx: Context) -> Result:
     from twin.optics import project_exact
     from twin.render import StereoRenderer
 
-    design = ctx.design("hexagon127")
-    calib = twin_calibration(design)
+    setup = ctx.sensor_setup(ctx.design("hexagon127"))
+    design, calib, built = setup.design, setup.calib, setup.twin_design   # pipeline's drawing; the twin's build
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(0.0, 2.0, 4.0, 6.0, 8.0))]
     trials = int(ctx.param("trials", TRIALS, quick=2))
     if depths[0] != 0.0:
         depths = [0.0] + depths
     jitter_rng = ctx.rng("refraction/jitter")
-    renderer = StereoRenderer(design, rng=ctx.rng("refraction/render"))
+    renderer = StereoRenderer(built, rng=ctx.rng("refraction/render"))
     n_markers = design.marker_count
 
     true_dz, app_dz, rows, matched = [], [], [], []
@@ -109,7 +109,7 @@ def run(ctx: Context) -> Result:
                     z0_app = None
                 continue           # nothing matched: no sample (counted in matched_fraction_min)
             app = triangulate(m, calib)
-            exact = correct_exact(m, calib, design)
+            exact = correct_exact(m, calib, design, n_gel=setup.n_gel)
             truth = board_markers(design, pose)
             z_app = float(np.mean(app.xyz_mm[:, 2]))
             if d == 0.0:
@@ -133,7 +133,7 @@ def run(ctx: Context) -> Result:
     z0 = None
     for d in depths:
         pts = board_markers(design, board_pose(design, d, 0.0, 0.0, 0.0, 0.0))
-        mm = MarkerMatches(ids, project_exact(pts, design, "left"), project_exact(pts, design, "right"))
+        mm = MarkerMatches(ids, project_exact(pts, built, "left"), project_exact(pts, built, "right"))
         z = float(np.mean(triangulate(mm, calib).xyz_mm[:, 2]))
         if z0 is None:
             z0 = z
@@ -161,7 +161,8 @@ def run(ctx: Context) -> Result:
     lin_r = np.array([r_of[i] for dct in lin_err for i in dct])
     ex_r = np.array([r_of[i] for dct in ex_err for i in dct])
 
-    out = Result(designs=[design])
+    out = Result(designs=[design], setups=[setup.provenance])
+    out.notes.append(calibration_note([setup]))
     out.metric("n_implied_by_optics", implied.n, "1")
     out.metric("matched_fraction_min", min(matched), "1")
     if fit is None:
@@ -191,7 +192,7 @@ def run(ctx: Context) -> Result:
                      f"±{JITTER_TILT_DEG}° tilt; the board face sits at the bare gel's surface z = −T at depth 0.")
     out.notes.append(f"Fit: {fit.summary() if fit else 'none'}. Implied by the twin's optics (noise-free): "
                      f"{implied.summary()}.")
-    out.notes.append(f"Stack: acrylic n = {design.optics.acrylic_n}, gel n = {design.optics.gel_n}. A marker moving "
+    out.notes.append(f"Stack: acrylic n = {built.optics.acrylic_n}, gel n = {built.optics.gel_n:.4f}. A marker moving "
                      "inside the gel changes only the gel path, so the paraxial slope is n_gel itself.")
     claim = (f"the effective index fitted from the press is n = {PAPER_N}, between acrylic "
              f"{design.optics.acrylic_n} and gel {design.optics.gel_n}")

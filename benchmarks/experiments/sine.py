@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from benchmarks.experiments._common import (make_indenter, reconstruct, rms, run_press_cells, surface_grid,
-                                            twin_calibration)
+                                            calibration_note)
 from benchmarks.registry import Context, Finding, Result, register, stream_rng
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -83,8 +83,9 @@ def run(ctx: Context) -> Result:
     seps = [float(s) for s in ctx.param("separations", tuple(SEP_DESIGNS), quick=(3.54, 1.80))]
     yaws = [float(y) for y in ctx.param("yaws", YAWS_DEG, quick=(0.0,))]
     designs = ctx.designs([SEP_DESIGNS[s] for s in seps])
-    out = Result(designs=designs)
-    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}")
+    setups = {d.name: ctx.sensor_setup(d) for d in designs}   # estimated calibration: once per design
+    out = Result(designs=designs, setups=[st.provenance for st in setups.values()])
+    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", setups[design.name])
             for design in designs for k in omega_idx for yaw in yaws]
     cells = run_press_cells(ctx, out, press_cell, jobs, desc="sine", params=lambda j: (
         {"design": j[0].name, "omega_index": j[1], "yaw_deg": j[2]},
@@ -163,7 +164,7 @@ def run(ctx: Context) -> Result:
         split_verdict(gaps)))
     out.notes.append("Upper surface: the object's z > 0 half (phase < 0.5 from the crest); lowest points: the "
                      f"deepest {VALLEY_BAND:.0%} of the peak-to-peak amplitude. Error = reconstructed − CAD height.")
-    out.notes.append("Calibration: the twin's true cameras; refraction: the Reconstructor's default model.")
+    out.notes.append(calibration_note(setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
     out.notes.append("skin_penetration_max_mm: how far the twin's outer skin (vertices, face centroids, edge midpoints, "
                      "the indenter's 0.1 mm samples) lies inside the rigid sine; a cell beyond 0.05 mm is invalid.")
 
@@ -197,19 +198,23 @@ def run(ctx: Context) -> Result:
     return out
 
 
-def press_cell(design, k: int, yaw: float, seed: int, stream: str) -> tuple:
+def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None) -> tuple:
     """One cell of the grid: press the sine ω = OMEGAS[k] rotated by ``yaw`` into ``design``, reconstruct
     the frame with the unchanged pipeline and score it; returns (cell row, surface grid). The frame's
-    noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`)."""
+    noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
+    ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
+    given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``."""
+    from benchmarks.estimated import sensor_setup
     from twin.simulate import press
 
     rng = stream_rng(seed, stream)
-    calib = twin_calibration(design)
+    setup = setup if setup is not None else sensor_setup(design)   # None: oracle (the twin's exact sensor)
+    built, design, calib = setup.twin_design, setup.design, setup.calib
     radius = design.pattern_radius_mm() - design.pattern.separation_mm / 2
     w = OMEGAS[k]
     ind = make_indenter("sine", amplitude_mm=AMPLITUDE_MM, omega_rad_per_mm=w)
-    frame, truth = press(design, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng)[-1]
-    fr = reconstruct(design, calib, [frame])[0]
+    frame, truth = press(built, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng)[-1]
+    fr = reconstruct(design, calib, [frame], **setup.reconstructor_kw())[0]
     g = surface_grid(fr.skin, truth, radius)
     zi = g["z_ind"]
     ridge = np.nanmin(zi)           # the object's crests: nearest to the sensor (sensor z lowest)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from benchmarks.experiments._common import identity_correct, make_indenter, reconstruct, twin_calibration
+from benchmarks.experiments._common import calibration_note, identity_correct, make_indenter, reconstruct
 from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -83,10 +83,10 @@ def _max_step_mm(truths) -> float:
 )
 def run(ctx: Context) -> Result:
     """Letters G / e / o under slow, lateral and rapid motions: correct-identity rate of DTRC vs NN."""
-    design = ctx.design()
-    calib = twin_calibration(design)
+    setup = ctx.sensor_setup(ctx.design())   # the twin simulates setup.twin_design; the pipeline gets setup.design
+    design, calib = setup.design, setup.calib
     n = design.marker_count
-    out = Result(designs=[design])
+    out = Result(designs=[design], setups=[setup.provenance])
     letters = ctx.param("letters", "Geo")
     friction = float(ctx.param("friction", FRICTION))
     rows, tracks = [], {}
@@ -94,13 +94,13 @@ def run(ctx: Context) -> Result:
     wrong_ids = {t: 0 for t in TRACKERS}
     n_frames = 0
     for char, motion in ctx.bar([m for m in MOTIONS if m[0] in letters], desc="tracking"):
-        seq = _simulate(design, char, ctx.rng(f"tracking/{motion}"), friction)
+        seq = _simulate(setup.twin_design, char, ctx.rng(f"tracking/{motion}"), friction)
         frames, truths = [f for f, _ in seq], [t for _, t in seq]
         invalid += sum(1 for t in truths if t.physics_valid is False)
         n_frames += len(frames)
         out.metric(f"max_lateral_step_mm_{char}", _max_step_mm(truths), "mm")
         for tracker in TRACKERS:
-            results = reconstruct(design, calib, frames, tracker=tracker)
+            results = reconstruct(design, calib, frames, tracker=tracker, **setup.reconstructor_kw())
             correct, wrong = [], 0
             for k, (fr, truth) in enumerate(zip(results, truths)):
                 ok = identity_correct(fr.corrected.ids, fr.corrected.xyz_mm, truth, design.pattern.separation_mm / 2)
@@ -124,9 +124,10 @@ def run(ctx: Context) -> Result:
         out.metric(f"{t}_correct_rate_min", min(rates), "1")
     out.tables["per_frame"] = rows
     out.notes.append("Correct id: the nearest truth marker (3-D, corrected cloud) has the reported id and lies "
-                     "within separation/2; missing markers count as not correct. Calibration: the twin's true cameras. "
+                     "within separation/2; missing markers count as not correct. "
                      "Nearest-neighbour matching can only fail where a marker moves laterally by more than about "
                      "half a separation between frames (max_lateral_step_mm_*).")
+    out.notes.append(calibration_note([setup]))
     out.notes.append(f"Twin contact with Coulomb friction mu = {friction:g} (stick/slip at the outer vertices, "
                      "twin.physics): lateral letter motions drag the skin under the letter. Frames failing their "
                      "physics checks are counted in invalid_frames.")
