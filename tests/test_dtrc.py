@@ -1,5 +1,6 @@
 """DTRC ring coding, stereo matching and tracking on synthetic lattices of the real designs."""
 
+import zlib
 from pathlib import Path
 
 import cv2
@@ -40,7 +41,7 @@ def _blobs(uv):
 @pytest.mark.parametrize("rot_deg,bulge", [(0, 0), (-5, 0), (5, 0), (-5, 0.15), (5, 0.15)])
 def test_ids_are_canonical_under_rotation_and_bulge(name, rot_deg, bulge):
     design = load_design(name)
-    rng = np.random.default_rng(abs(hash((name, rot_deg, bulge))) % 2**32)
+    rng = np.random.default_rng(zlib.crc32(repr((name, rot_deg, bulge)).encode()))   # the same in every process
     uv = _view(design, rng, rot_deg=rot_deg, bulge=bulge, persp=0.05)
     perm = rng.permutation(len(uv))  # detection order is arbitrary
     coding = code_rings(_blobs(uv[perm]), design)

@@ -90,9 +90,10 @@ def test_wide_gaussian_skin_follows_indenter_and_pins_tilt_with_the_skin():
     nearest = np.argmin(np.linalg.norm(truth.skin_vertices_mm[None, :, :2] - base[flank, None, :2], axis=2), axis=1)
     cosang = np.sum(-axis[flank] * normals[nearest], axis=1)
     assert np.median(np.degrees(np.arccos(np.clip(cosang, -1, 1)))) < 0.5 * np.median(tilt[flank])
-    # pins lean outward (the skin normal on the flank of a dimple points toward the axis from below)
+    # pins lean outward: on the flank of the dimple the skin's inner normal tilts away from the axis, so each
+    # pin's marker end lies further out than its base (measured: radial component of the axis 0.33-0.37)
     radial = rest[flank, :2] / r[flank, None]
-    assert np.all(np.sum(axis[flank, :2] * radial, axis=1) < 0) or np.all(np.sum(axis[flank, :2] * radial, axis=1) > 0)
+    assert np.all(np.sum(axis[flank, :2] * radial, axis=1) > 0.1)
 
 
 def _vertex_normals(v, f):
