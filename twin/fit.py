@@ -5,7 +5,7 @@ Stages (each cached in ``OUT.cache/`` keyed by its inputs, so an interrupted fit
 1. **camera** — the shallowest training tap is simulated with the nominal skin; its pin tips are projected
    through a camera on the sensor axis; the camera's roll about its axis is found by a 1° grid over the
    pattern's 60° symmetry (median nearest-marker distance), then focal length, principal point, radial
-   distortion (k1, k2), lateral offset and axial position by robust least squares (soft-L1) on mutual
+   distortion (k1, k2, k3), lateral offset and axial position by robust least squares (soft-L1) on mutual
    nearest-neighbour matches, re-matched 6 times. The matches give the reference frame's marker ids; every
    frame is identified against that reference (:func:`pipeline.tactip_id.identify_by_reference`).
 2. **tilt frame** — the robot's tilt axes relative to the pattern (angle about the sensor axis and the
@@ -41,7 +41,7 @@ from twin.tapdata import TapDataError, digest, load_tap_frames, read_frame, spli
 
 __all__ = ["FitContext", "apply_params", "cmd_fit", "register"]
 
-CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
+CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
 
 
@@ -54,12 +54,16 @@ def apply_params(design: SensorDesign, cam: dict | None = None, twin: dict | Non
         for k, v in cam.items():
             if k == "f_px":
                 c["fx_px"] = c["fy_px"] = float(v)
-            elif k in ("k1", "k2"):
-                c["dist"][0 if k == "k1" else 1] = float(v)
+            elif k in ("k1", "k2", "k3"):
+                c["dist"][{"k1": 0, "k2": 1, "k3": 4}[k]] = float(v)
             elif k == "air_gap_mm":
                 raw["optics"]["air_gap_mm"] = float(v)
+            elif k == "separation_mm":
+                continue
             else:
                 c[k] = float(v)
+    if cam and "separation_mm" in cam:
+        raw["pattern"]["separation_mm"] = float(cam["separation_mm"])
     if twin:
         raw["twin"] = {**raw.get("twin", {}), **{k: float(v) for k, v in twin.items()}}
     if name:
@@ -69,7 +73,7 @@ def apply_params(design: SensorDesign, cam: dict | None = None, twin: dict | Non
 
 def camera_vector(design: SensorDesign) -> np.ndarray:
     c = design.camera
-    return np.array([c.fx_px, c.cx_px, c.cy_px, c.dist[0], c.dist[1], c.x_mm, c.y_mm,
+    return np.array([c.fx_px, c.cx_px, c.cy_px, c.dist[0], c.dist[1], c.dist[4], c.x_mm, c.y_mm,
                      design.optics.air_gap_mm, c.roll_deg])
 
 
@@ -96,6 +100,16 @@ class FitContext:
         self.ref_xy: np.ndarray | None = None
         self.real_xy: list[np.ndarray] = []
 
+    def with_design(self, design: SensorDesign) -> "FitContext":
+        """This context (frames, detections, split) for another design (its own skin and tap cache)."""
+        import copy
+
+        c = copy.copy(self)
+        c.design = design
+        c.skin = DomeSkin(design)
+        c._taps = {}
+        return c
+
     def key(self) -> str:
         return digest(*[f.path for f in self.frames], [f.pose for f in self.frames],
                       json.dumps(to_dict(self.design), sort_keys=True, default=str))
@@ -115,13 +129,11 @@ class FitContext:
 
     # ----- identification -----------------------------------------------------------------
     def set_reference(self, ref_xy: np.ndarray) -> None:
+        """Identify every frame: frames in order of pose distance from the reference, each against the
+        already identified frame nearest in pose (its gaps filled from the reference), so a chain of small
+        steps carries the ids to the deepest, most tilted taps."""
         self.ref_xy = ref_xy
-        self.real_xy = []
-        for b in self.blobs:
-            idx = identify_by_reference(b.xy_px, ref_xy)
-            xy = np.full((len(ref_xy), 2), np.nan)
-            xy[idx >= 0] = b.xy_px[idx[idx >= 0]]
-            self.real_xy.append(xy)
+        self.real_xy = identify_chain(self.blobs, [f.pose for f in self.frames], self.ref, ref_xy)
 
     def residuals(self, design: SensorDesign, idx, twin: dict) -> np.ndarray:
         out = []
@@ -137,6 +149,31 @@ class FitContext:
         return float(np.sqrt(np.mean(r * r) * 2)) if len(r) else float("inf")
 
 
+def _pose_vec(p: TapPose) -> np.ndarray:
+    return np.array([p.depth_mm, p.tilt_x_deg / 5.0, p.tilt_y_deg / 5.0])
+
+
+def identify_chain(blobs, poses, ref: int, ref_xy: np.ndarray) -> list[np.ndarray]:
+    """Identified positions (M, 2, NaN where unidentified) of every frame, see FitContext.set_reference."""
+    n = len(blobs)
+    out: list[np.ndarray | None] = [None] * n
+    out[ref] = ref_xy.copy()
+    done = [ref]
+    P = np.array([_pose_vec(p) for p in poses])
+    order = np.argsort(np.linalg.norm(P - P[ref], axis=1))
+    for i in order:
+        if out[i] is not None:
+            continue
+        j = done[int(np.argmin(np.linalg.norm(P[done] - P[i], axis=1)))]
+        guide = np.where(np.isfinite(out[j]), out[j], ref_xy)
+        idx = identify_by_reference(blobs[i].xy_px, guide)
+        xy = np.full((len(ref_xy), 2), np.nan)
+        xy[idx >= 0] = blobs[i].xy_px[idx[idx >= 0]]
+        out[i] = xy
+        done.append(int(i))
+    return out
+
+
 # ----- stage 1/4: camera ------------------------------------------------------------------
 
 def _cam_residuals(vec, ctx: FitContext, pts3d, obs, base: SensorDesign):
@@ -149,8 +186,8 @@ def _cam_residuals(vec, ctx: FitContext, pts3d, obs, base: SensorDesign):
 
 
 def _bounds(vec):
-    lo = np.array([60, 200, 120, -1.0, -1.0, -5, -5, 0.5, -180.0])
-    hi = np.array([1500, 440, 360, 1.0, 1.0, 5, 5, 30.0, 180.0])
+    lo = np.array([60, 200, 120, -1.0, -1.0, -1.0, -5, -5, 0.5, -180.0])
+    hi = np.array([1500, 440, 360, 1.0, 1.0, 1.0, 5, 5, 30.0, 180.0])
     return lo, hi
 
 
@@ -178,15 +215,27 @@ def fit_camera_reference(ctx: FitContext, twin: dict) -> tuple[SensorDesign, np.
     vec = camera_vector(d)
     lo, hi = _bounds(vec)
     vec = np.clip(vec, lo + 1e-9, hi - 1e-9)
-    for _ in range(6):
+    k3 = CAM_KEYS.index("k3")
+    for it in range(6):
         uv = project_markers(apply_params(design, dict(zip(CAM_KEYS, vec))), p)
         idx = identify_by_reference(real, uv)
         ok = idx >= 0
         obs = np.full_like(uv, np.nan)
         obs[ok] = real[idx[ok]]
-        res = least_squares(_cam_residuals, vec, args=(ctx, [p[ok]], [obs[ok]], design), bounds=(lo, hi),
-                            loss="soft_l1", f_scale=1.0, x_scale="jac")
-        vec = res.x
+        # k3 stays 0 until the matches have settled (freed early it trades off against k1, k2 and
+        # lets the inner-ring matches pull the outer rings off their pins)
+        free = np.ones(len(vec), bool)
+        free[k3] = it >= 3
+        full = vec.copy()
+
+        def fun(x, full=full, free=free, ok=ok, obs=obs):
+            full[free] = x
+            return _cam_residuals(full, ctx, [p[ok]], [obs[ok]], design)
+
+        res = least_squares(fun, vec[free], bounds=(lo[free], hi[free]), loss="soft_l1", f_scale=1.0,
+                            x_scale="jac")
+        vec = vec.copy()
+        vec[free] = res.x
     fitted = apply_params(design, dict(zip(CAM_KEYS, vec)))
     uv = project_markers(fitted, p)
     idx = identify_by_reference(real, uv)
@@ -195,6 +244,31 @@ def fit_camera_reference(ctx: FitContext, twin: dict) -> tuple[SensorDesign, np.
     report = {"roll_grid_median_px": best[0], "matched": int((idx >= 0).sum()),
               "rms_px": float(np.sqrt(np.mean(np.sum((uv[idx >= 0] - ref_xy[idx >= 0]) ** 2, axis=1))))}
     return fitted, ref_xy, report
+
+
+LAYOUT_SEPARATIONS_MM = tuple(np.round(np.arange(1.8, 2.85, 0.1), 2))
+
+
+def fit_layout(ctx: FitContext, twin: dict, bar=None) -> tuple[float, list]:
+    """Stage 0: the pins' arc spacing on the dome (the published 331-pin CAD was not available): for each
+    candidate the stage-1 camera fit, scored by the mean distance of every real reference marker to the
+    nearest projected pin tip, capped at 8 px (unmatched markers cost the cap)."""
+    from scipy.spatial import cKDTree
+
+    real = ctx.blobs[ctx.ref].xy_px
+    scores = []
+    for sep in LAYOUT_SEPARATIONS_MM:
+        try:
+            c = ctx.with_design(apply_params(ctx.design, {"separation_mm": sep}))
+        except Exception:  # noqa: BLE001 - a spacing the design cannot take (pins would touch): skipped
+            continue
+        d, _, _ = fit_camera_reference(c, twin)
+        p, _ = c.tap(c.ref, twin)
+        dist = cKDTree(project_markers(d, p)).query(real)[0]
+        scores.append((float(np.mean(np.minimum(dist, 8.0))), float(sep)))
+        if bar is not None:
+            bar.update(1)
+    return min(scores)[1], scores
 
 
 def fit_camera_all(ctx: FitContext, design: SensorDesign, twin: dict) -> tuple[SensorDesign, dict]:
@@ -348,16 +422,28 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
     log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
         f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
         f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
-    bar = tqdm(total=5 + 24 + 5, desc="fit-twin", unit="step", disable=not progress)
+    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 5, desc="fit-twin", unit="step", disable=not progress)
     twin0 = design.twin_params()
+
+    def stage0():
+        sep, scores = fit_layout(ctx, twin0, bar)
+        return {"separation_mm": sep, "scores": scores}
+
+    s0, hit = _cached(cache, "0_layout", base_key, stage0)
+    if hit:
+        bar.update(len(LAYOUT_SEPARATIONS_MM))
+    log(f"  pin spacing on the dome{' (cached)' if hit else ''}: {s0['separation_mm']:.2f} mm "
+        f"(scores " + ", ".join(f"{b:.1f}: {a:.2f}" for a, b in s0["scores"]) + ")")
+    design = apply_params(design, {"separation_mm": s0["separation_mm"]})
+    ctx = ctx.with_design(design)
 
     def stage1():
         d, ref_xy, rep = fit_camera_reference(ctx, twin0)
         return {"cam": dict(zip(CAM_KEYS, map(float, camera_vector(d)))), "ref_xy": ref_xy.tolist(), "report": rep}
 
-    s1, hit = _cached(cache, "1_camera_reference", base_key, stage1)
+    s1, hit = _cached(cache, "1_camera_reference", digest(base_key, s0["separation_mm"]), stage1)
     bar.update(1)
-    d1 = apply_params(design, s1["cam"])
+    d1 = apply_params(design, s1["cam"])  # (design carries the fitted spacing)
     ctx.set_reference(np.asarray(s1["ref_xy"], dtype=np.float64))
     ident = [int(np.isfinite(x[:, 0]).sum()) for x in ctx.real_xy]
     log(f"  camera from the reference tap{' (cached)' if hit else ''}: {s1['report']['matched']} markers matched, "
@@ -408,7 +494,8 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
                                                               "edge_px", "noise_grey", "marker_scale")},
                        "report": s5["report"]},
         "residuals": {"train_rms_px": train_rms, "held_out_rms_px": held_rms},
-        "fitted_parameters": len(CAM_KEYS) + 4 + 5, "seconds": time.time() - t0,
+        "separation_mm": s0["separation_mm"],
+        "fitted_parameters": 1 + len(CAM_KEYS) + 4 + 5, "seconds": time.time() - t0,
     }
     (Path(str(out) + ".fit.json")).write_text(json.dumps(summary, indent=1))
     c = s4["report"]

@@ -8,7 +8,7 @@ truth). Per frame: marker count, apparent radius, contrast, background, spacing 
 marker the position error twin − real (px) and the displacement error (twin − twin reference) − (real −
 real reference). Baselines on the same held-out frames: (a) static — each marker where the training frames
 put it on average; (b) ridge regression from the pose to every marker position, on [1, d, tx, ty, d·tx,
-d·ty, tx·ty, d², tx², ty²] (λ = 1e-3 × the features' scale), fitted per marker on the training frames.
+d·ty, tx·ty, d², tx², ty²] (features standardised, intercept free, λ = 1e-3 × the number of training frames), fitted per marker on the training frames.
 Writes an overlay PNG per frame, ``summary.json``, ``report.md``, ``report.html`` and ``errors.png``.
 """
 
@@ -43,19 +43,26 @@ def ridge_features(poses) -> np.ndarray:
 def baselines(real_xy: list[np.ndarray], poses, train, held) -> dict[str, list[np.ndarray]]:
     """Held-out predictions (M, 2) per held-out frame of the static and ridge baselines."""
     Y = np.stack([real_xy[i] for i in train])            # (T, M, 2)
-    static = np.nanmean(Y, axis=0)
-    F = ridge_features([poses[i] for i in train])
-    Fh = ridge_features([poses[i] for i in held])
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # markers never identified stay NaN
+            static = np.nanmean(Y, axis=0)
+    F = ridge_features([poses[i] for i in train])[:, 1:]
+    Fh = ridge_features([poses[i] for i in held])[:, 1:]
+    mu, sd = F.mean(axis=0), F.std(axis=0) + 1e-12
+    F, Fh = (F - mu) / sd, (Fh - mu) / sd          # standardised; the intercept is not penalised
     M = Y.shape[1]
     ridge = np.full((len(held), M, 2), np.nan)
-    lam = RIDGE_LAMBDA * np.trace(F.T @ F) / F.shape[1]
     for m in range(M):
         ok = np.all(np.isfinite(Y[:, m]), axis=1)
-        if ok.sum() < F.shape[1]:
+        if ok.sum() < F.shape[1] + 2:
             continue
-        A = F[ok]
-        coef = np.linalg.solve(A.T @ A + lam * np.eye(A.shape[1]), A.T @ Y[ok, m])
-        ridge[:, m] = Fh @ coef
+        A, y = F[ok], Y[ok, m]
+        am, ym = A.mean(axis=0), y.mean(axis=0)
+        coef = np.linalg.solve((A - am).T @ (A - am) + RIDGE_LAMBDA * ok.sum() * np.eye(A.shape[1]), (A - am).T @ (y - ym))
+        ridge[:, m] = ym + (Fh - am) @ coef
     return {"static": [static] * len(held), "ridge": list(ridge)}
 
 
@@ -171,7 +178,7 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
     for k, v in stats.items():
         v["relative_difference"] = (abs(v["twin"] - v["real"]) / abs(v["real"])
                                     if v["real"] not in (None, 0) and v["twin"] is not None else None)
-    n_params = {"twin": len(CAM_KEYS) + 4, "static": 2 * design.marker_count,
+    n_params = {"twin": 1 + len(CAM_KEYS) + 4, "static": 2 * design.marker_count,
                 "ridge": 2 * design.marker_count * ridge_features(poses[:1]).shape[1]}
     goals = {
         "twin_le_half_static": held_common["twin"] is not None and held_common["twin"] <= 0.5 * held_common["static"],
