@@ -166,7 +166,7 @@ def test_identification_by_reference_follows_small_moves_and_refuses_large_ones(
 
 def test_ridge_baseline_recovers_a_quadratic_pose_model():
     from twin.tactip import TapPose
-    from twin.validate import baselines
+    from benchmarks.tactip_validate import baselines
 
     rng = np.random.default_rng(1)
     poses = [TapPose(rng.uniform(2, 5), rng.uniform(-15, 15), rng.uniform(-15, 15)) for _ in range(24)]
@@ -215,7 +215,7 @@ def test_bad_tap_inputs_give_clear_errors(tmp_path, design):
 def test_camera_fit_on_a_real_tap_matches_most_pins(design):
     """The reference-tap camera fit (stage 1 of fit-twin) on the real frames at the spacing fit-twin
     selects (2.2 mm, measured): measured 309 of 331 pins matched at 3.0 px RMS."""
-    from twin.fit import FitContext, apply_params, fit_camera_reference
+    from benchmarks.tactip_fit import FitContext, apply_params, fit_camera_reference
 
     d = apply_params(design, {"separation_mm": 2.2})
     ctx = FitContext(DATA, TARGETS, d, progress=False, skip_unlabelled=True, log=lambda *a: None)

@@ -43,11 +43,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=cmd_simulate)
 
-    from twin import fit, validate
-
-    fit.register(sub)
-    validate.register(sub)
-
 
 EXIT_PHYSICS_INVALID = 3   # frames written, but at least one failed its physics checks (see meta.json 'validity')
 

@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.design import load_design
 from pipeline.detection import detect_markers
 from pipeline.tactip_id import frame_stats, identify_by_reference
-from twin.fit import CAM_KEYS, FitContext
+from benchmarks.tactip_fit import CAM_KEYS, FitContext
 from twin.tactip import project_markers, render_frame
 
 __all__ = ["validate", "register", "cmd_validate", "ridge_features"]
