@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.design import load_design
 from pipeline.detection import detect_markers
 from pipeline.tactip_id import frame_stats, identify_by_reference
-from benchmarks.tactip_fit import CAM_KEYS, FitContext
+from benchmarks.tactip_fit import CAM_KEYS, FitContext, identify_chain
 from twin.tactip import project_markers, render_frame
 
 __all__ = ["validate", "register", "cmd_validate", "ridge_features"]
@@ -119,12 +119,8 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
     idx = identify_by_reference(twin_blobs[ctx.ref].xy_px, truth_uv[ctx.ref])
     ref_twin = np.full_like(uv_ref, np.nan)
     ref_twin[idx >= 0] = twin_blobs[ctx.ref].xy_px[idx[idx >= 0]]
-    twin_xy = []
-    for b in twin_blobs:
-        j = identify_by_reference(b.xy_px, ref_twin)
-        xy = np.full_like(uv_ref, np.nan)
-        xy[j >= 0] = b.xy_px[j[j >= 0]]
-        twin_xy.append(xy)
+    # the same chained identification as the real frames (pose order, nearest identified pose)
+    twin_xy = identify_chain(twin_blobs, [f.pose for f in ctx.frames], ctx.ref, ref_twin)
     real_xy = ctx.real_xy
     poses = [f.pose for f in ctx.frames]
     base = baselines(real_xy, poses, ctx.train, ctx.held)
