@@ -213,8 +213,9 @@ def test_bad_tap_inputs_give_clear_errors(tmp_path, design):
 
 @needs_real
 def test_camera_fit_on_a_real_tap_matches_most_pins(design):
-    """The reference-tap camera fit (stage 1 of fit-twin) on the real frames at the spacing fit-twin
-    selects (2.2 mm, measured): measured 309 of 331 pins matched at 3.0 px RMS."""
+    """The reference-tap camera fit (stage 1 of fit-twin) on the real frames at a pin spacing near the one
+    fit-twin selects (2.1 mm in the measured run; 2.2 mm scored 2.72 against 2.66 px there): 309 of 331 pins
+    matched at 3.0 px RMS when measured without k3, the bounds below leave room for the k3 variant."""
     from benchmarks.tactip_fit import FitContext, apply_params, fit_camera_reference
 
     d = apply_params(design, {"separation_mm": 2.2})
