@@ -56,11 +56,13 @@ __all__ = [
     "Gel",
     "Camera",
     "Cameras",
+    "MonoCamera",
     "SensorDesign",
     "load_design",
     "list_designs",
     "design_path",
     "marker_layout",
+    "to_toml",
 ]
 
 DEFAULT_DESIGN = "hexagon127"
@@ -79,6 +81,10 @@ class Pattern:
     links: int             # DTRC links l of an interior marker (reciprocal links: 2 x neighbours)
     separation_mm: float   # nearest-neighbour spacing of markers (ring spacing for circular)
     dome_height_mm: float  # 0 for a flat skin; sagitta of a spherical dome over the pattern radius
+    #: how the planar layout is laid on the dome: "vertical" (x-y kept, z from the dome: the shallow caps of
+    #: the StereoTacTip modules) or "arc" (a marker's distance from the centre in the layout is its arc length
+    #: along the dome from the apex: pins evenly spaced over a deep, e.g. hemispherical, TacTip dome)
+    mapping: str = "vertical"
 
 
 @dataclass(frozen=True)
@@ -153,6 +159,49 @@ class Cameras:
 
 
 @dataclass(frozen=True)
+class MonoCamera:
+    """The single camera of a monocular (TacTip-type) sensor: on the sensor axis below the skin, looking
+    along +z (OpenCV axes = sensor axes); ``roll_deg`` turns it about its optical axis."""
+
+    width_px: int
+    height_px: int
+    fps: float
+    model_note: str
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist: tuple[float, ...]
+    x_mm: float = 0.0
+    y_mm: float = 0.0
+    roll_deg: float = 0.0
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def D(self) -> np.ndarray:
+        return np.asarray(self.dist, dtype=np.float64)
+
+
+#: Keys of the optional ``[twin]`` section (rendering appearance and tap physics of a monocular design),
+#: with their defaults; every value is a finite number. ``twin.tactip`` gives them their meaning.
+TWIN_KEYS: dict[str, float] = {
+    "bending_ratio": 0.3,          # membrane bending / stretching stiffness (mm^2)
+    "depth_offset_mm": 0.0,        # tap depth of the labels minus the depth into the undeformed dome
+    "tilt_frame_deg": 0.0,         # angle of the robot's tilt axes about the sensor axis
+    "tilt_mirror": 0.0,            # 1: the second tilt angle turns the other way
+    "marker_grey": 180.0,          # marker grey level at the image centre
+    "marker_shading": 0.0,         # relative marker brightening per squared normalised image radius
+    "background_grey": 20.0,       # grey level between the markers
+    "edge_px": 1.0,                # Gaussian edge blur (px)
+    "noise_grey": 1.0,             # pixel noise sigma (grey levels)
+    "marker_scale": 1.0,           # apparent marker diameter / design diameter
+}
+
+
+@dataclass(frozen=True)
 class SensorDesign:
     """A whole skin module + cameras. Build with :func:`load_design`."""
 
@@ -164,8 +213,18 @@ class SensorDesign:
     markers: Markers
     optics: Optics
     gel: Gel
-    cameras: Cameras
+    cameras: Cameras | None      # the stereo pair; None for a monocular design
     source_file: str = ""
+    camera: MonoCamera | None = None   # the single camera of a monocular design
+    twin: tuple[tuple[str, float], ...] = ()   # the [twin] section, sorted (key, value)
+
+    @property
+    def monocular(self) -> bool:
+        return self.camera is not None
+
+    def twin_params(self) -> dict[str, float]:
+        """The ``[twin]`` section over its defaults (:data:`TWIN_KEYS`)."""
+        return {**TWIN_KEYS, **dict(self.twin)}
 
     # ----- derived geometry -------------------------------------------------------------
     @property
@@ -192,8 +251,27 @@ class SensorDesign:
     def rest_markers_mm(self) -> np.ndarray:
         """Rest marker face centres in the sensor frame, (N, 3) float64, mm, canonical order."""
         xy, _ = marker_layout(self.pattern)
+        if self.pattern.mapping == "arc":
+            p, n = self.arc_surface(xy)
+            return p - self.marker_depth_mm * n
         z = np.full(len(xy), -self.marker_depth_mm) + self.dome_z_mm(xy)
         return np.column_stack([xy, z])
+
+    def dome_radius_mm(self) -> float:
+        """Radius of the sphere the dome is a cap of (mm); inf for a flat skin."""
+        h, a = self.pattern.dome_height_mm, self.gel.radius_mm
+        return math.inf if h <= 0 else (a * a + h * h) / (2 * h)
+
+    def arc_surface(self, layout_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Outer-surface points and outward unit normals (N, 3) of layout points laid on the dome by arc
+        length from the apex (``mapping = "arc"``)."""
+        xy = np.asarray(layout_xy, dtype=np.float64).reshape(-1, 2)
+        R = self.dome_radius_mm()
+        s = np.hypot(xy[:, 0], xy[:, 1])
+        th = s / R
+        az = np.arctan2(xy[:, 1], xy[:, 0])
+        n = np.column_stack([np.sin(th) * np.cos(az), np.sin(th) * np.sin(az), np.cos(th)])
+        return n * R - np.array([0.0, 0.0, R]), n
 
     def marker_layers(self) -> np.ndarray:
         """Layer (ring) index of each marker in canonical order, (N,) int64; 0 = centre."""
@@ -218,11 +296,24 @@ class SensorDesign:
         r2 = np.minimum(np.sum(xy_mm**2, axis=1), a * a)
         return np.sqrt(R * R - r2) - R
 
+    def camera_pose(self) -> np.ndarray:
+        """sensor_from_camera (4x4, mm) of a monocular design's camera."""
+        if self.camera is None:
+            raise DesignError(f"design {self.name!r} is a stereo design (no [camera] block)")
+        c = self.camera
+        r = math.radians(c.roll_deg)
+        T = np.eye(4)
+        T[:3, :3] = [[math.cos(r), -math.sin(r), 0.0], [math.sin(r), math.cos(r), 0.0], [0.0, 0.0, 1.0]]
+        T[:3, 3] = [c.x_mm, c.y_mm, self.camera_z_mm]
+        return T
+
     def camera_poses(self) -> dict[str, np.ndarray]:
         """Nominal camera poses: ``{'left': T, 'right': T}``, each 4x4 sensor_from_camera (mm).
 
         Camera axes are OpenCV's. Each camera yaws by half the toe-in toward the sensor axis.
         """
+        if self.cameras is None:
+            raise DesignError(f"design {self.name!r} is monocular: it has no stereo [cameras] block")
         half = math.radians(self.cameras.toe_in_deg) / 2.0
         out = {}
         for side, sign in (("left", -1.0), ("right", 1.0)):
@@ -325,6 +416,11 @@ _SCHEMA: dict[str, dict[str, type | tuple[type, ...]]] = {
                 "model_note": str, "left": dict, "right": dict},
 }
 _CAMERA_KEYS = {"fx_px": float, "fy_px": float, "cx_px": float, "cy_px": float, "dist": list}
+_MONO_KEYS = {"width_px": int, "height_px": int, "fps": float, "model_note": str, **_CAMERA_KEYS}
+_MONO_OPTIONAL = {"x_mm": float, "y_mm": float, "roll_deg": float}
+_PATTERN_OPTIONAL = {"mapping": str}
+PATTERN_MAPPINGS = ("vertical", "arc")
+_OPTIONAL_SECTIONS = ("camera", "twin")
 _TOP = {"name": str, "description": str}
 
 
@@ -344,45 +440,72 @@ def _check(value: Any, typ: type, where: str) -> Any:
     return value
 
 
-def _section(raw: Mapping[str, Any], keys: Mapping[str, type], where: str) -> dict[str, Any]:
-    unknown = sorted(set(raw) - set(keys))
+def _section(raw: Mapping[str, Any], keys: Mapping[str, type], where: str,
+             optional: Mapping[str, type] | None = None) -> dict[str, Any]:
+    optional = optional or {}
+    unknown = sorted(set(raw) - set(keys) - set(optional))
     if unknown:
-        raise DesignError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join(keys)})")
+        raise DesignError(f"{where}: unknown key {unknown[0]!r} (allowed: {', '.join([*keys, *optional])})")
     missing = [k for k in keys if k not in raw]
     if missing:
         raise DesignError(f"{where}: missing key {missing[0]!r}")
-    return {k: _check(raw[k], t, f"{where}.{k}") for k, t in keys.items()}
+    out = {k: _check(raw[k], t, f"{where}.{k}") for k, t in keys.items()}
+    out.update({k: _check(raw[k], t, f"{where}.{k}") for k, t in optional.items() if k in raw})
+    return out
+
+
+def _dist(values: list, where: str) -> tuple[float, ...]:
+    if len(values) != 5:
+        raise DesignError(f"{where}: expected 5 coefficients (k1, k2, p1, p2, k3)")
+    return tuple(_check(d, float, where) for d in values)
 
 
 def design_from_dict(raw: Mapping[str, Any], *, source: str = "<dict>") -> SensorDesign:
     """Validate a parsed design mapping; errors name ``source`` and the offending key."""
     where = source
-    allowed = set(_TOP) | set(_SCHEMA)
+    allowed = set(_TOP) | set(_SCHEMA) | set(_OPTIONAL_SECTIONS)
     unknown = sorted(set(raw) - allowed)
     if unknown:
         raise DesignError(f"{where}: unknown key {unknown[0]!r}")
-    for k in list(_TOP) + list(_SCHEMA):
+    mono = "camera" in raw
+    if mono and "cameras" in raw:
+        raise DesignError(f"{where}: give either a stereo [cameras] block or a monocular [camera] block, not both")
+    required = [k for k in list(_TOP) + list(_SCHEMA) if not (mono and k == "cameras")]
+    for k in required:
         if k not in raw:
-            raise DesignError(f"{where}: missing key {k!r}")
+            raise DesignError(f"{where}: missing key {k!r}" + (" (or a monocular [camera] block)"
+                                                                if k == "cameras" else ""))
     top = {k: _check(raw[k], t, f"{where}: {k}") for k, t in _TOP.items()}
-    sec = {name: _section(raw[name] if isinstance(raw[name], Mapping) else
-                          _check(raw[name], dict, f"{where}: {name}"), keys, f"{where}: {name}")
-           for name, keys in _SCHEMA.items()}
 
-    cams = {}
-    for side in ("left", "right"):
-        c = _section(sec["cameras"][side], _CAMERA_KEYS, f"{where}: cameras.{side}")
-        dist = c["dist"]
-        if len(dist) != 5:
-            raise DesignError(f"{where}: cameras.{side}.dist: expected 5 coefficients (k1, k2, p1, p2, k3)")
-        c["dist"] = tuple(_check(d, float, f"{where}: cameras.{side}.dist") for d in dist)
-        cams[side] = Camera(**c)
-    cam_fields = {k: v for k, v in sec["cameras"].items() if k not in ("left", "right")}
+    def table(name: str) -> Mapping[str, Any]:
+        return raw[name] if isinstance(raw[name], Mapping) else _check(raw[name], dict, f"{where}: {name}")
+
+    sec = {name: _section(table(name), keys, f"{where}: {name}",
+                          _PATTERN_OPTIONAL if name == "pattern" else None)
+           for name, keys in _SCHEMA.items() if name in raw}
+
+    cameras = camera = None
+    if mono:
+        c = _section(table("camera"), _MONO_KEYS, f"{where}: camera", _MONO_OPTIONAL)
+        c["dist"] = _dist(c["dist"], f"{where}: camera.dist")
+        camera = MonoCamera(**c)
+    else:
+        cams = {}
+        for side in ("left", "right"):
+            c = _section(sec["cameras"][side], _CAMERA_KEYS, f"{where}: cameras.{side}")
+            c["dist"] = _dist(c["dist"], f"{where}: cameras.{side}.dist")
+            cams[side] = Camera(**c)
+        cam_fields = {k: v for k, v in sec["cameras"].items() if k not in ("left", "right")}
+        cameras = Cameras(**cam_fields, left=cams["left"], right=cams["right"])
+    twin: tuple[tuple[str, float], ...] = ()
+    if "twin" in raw:
+        t = _section(table("twin"), {}, f"{where}: twin", {k: float for k in TWIN_KEYS})
+        twin = tuple(sorted(t.items()))
     design = SensorDesign(
         name=top["name"], description=top["description"],
         pattern=Pattern(**sec["pattern"]), skin=Skin(**sec["skin"]), pins=Pins(**sec["pins"]),
         markers=Markers(**sec["markers"]), optics=Optics(**sec["optics"]), gel=Gel(**sec["gel"]),
-        cameras=Cameras(**cam_fields, left=cams["left"], right=cams["right"]), source_file=source,
+        cameras=cameras, source_file=source, camera=camera, twin=twin,
     )
     _validate_values(design, where)
     return design
@@ -425,13 +548,13 @@ def _validate_values(d: SensorDesign, where: str) -> None:
         raise DesignError(f"{where}: pattern.layers: must be in [2, {MAX_LAYERS}], got {d.pattern.layers}")
     if not 1 <= d.pattern.links <= MAX_LINKS:
         raise DesignError(f"{where}: pattern.links: must be in [1, {MAX_LINKS}], got {d.pattern.links}")
-    for key, value in [("pattern.separation_mm", d.pattern.separation_mm), ("skin.thickness_mm", d.skin.thickness_mm),
+    for key, value in ([("pattern.separation_mm", d.pattern.separation_mm), ("skin.thickness_mm", d.skin.thickness_mm),
                        ("pins.height_mm", d.pins.height_mm), ("pins.diameter_mm", d.pins.diameter_mm),
                        ("markers.diameter_mm", d.markers.diameter_mm),
                        ("markers.thickness_mm", d.markers.thickness_mm), ("optics.air_gap_mm", d.optics.air_gap_mm),
                        ("optics.acrylic_thickness_mm", d.optics.acrylic_thickness_mm),
-                       ("optics.gel_thickness_mm", d.optics.gel_thickness_mm), ("gel.radius_mm", d.gel.radius_mm),
-                       ("cameras.baseline_mm", d.cameras.baseline_mm)]:
+                       ("optics.gel_thickness_mm", d.optics.gel_thickness_mm), ("gel.radius_mm", d.gel.radius_mm)]
+                       + ([("cameras.baseline_mm", d.cameras.baseline_mm)] if d.cameras is not None else [])):
         _positive(value, f"{where}: {key}")
     for key, value in [("skin.youngs_modulus_mpa", d.skin.youngs_modulus_mpa),
                        ("gel.youngs_modulus_mpa", d.gel.youngs_modulus_mpa),
@@ -470,10 +593,24 @@ def _validate_values(d: SensorDesign, where: str) -> None:
     if H + h >= G:
         raise DesignError(f"{where}: pins.height_mm + pattern.dome_height_mm = {H + h:g} must be smaller than "
                           f"optics.gel_thickness_mm = {G:g} (the rim's markers would sit in the acrylic)")
+    if d.pattern.mapping not in PATTERN_MAPPINGS:
+        raise DesignError(f"{where}: pattern.mapping: {d.pattern.mapping!r} is not one of {PATTERN_MAPPINGS}")
     radius = analytic_pattern_radius_mm(d.pattern)
-    if radius + d.pattern.separation_mm / 2 > a:
+    if d.pattern.mapping == "arc":
+        if h <= 0:
+            raise DesignError(f"{where}: pattern.mapping = 'arc' lays the pattern on a dome: "
+                              f"pattern.dome_height_mm must be > 0")
+        R = (a * a + h * h) / (2 * h)
+        arc = R * math.asin(min(a / R, 1.0)) if h <= R else R * (math.pi - math.asin(a / R))
+        if radius + d.pattern.separation_mm / 2 > arc:
+            raise DesignError(f"{where}: the marker pattern (arc radius {radius:.2f} mm) does not fit on the dome "
+                              f"(arc length {arc:.2f} mm from apex to rim)")
+    elif radius + d.pattern.separation_mm / 2 > a:
         raise DesignError(f"{where}: the marker pattern (radius {radius:.2f} mm) does not fit "
                           f"inside gel.radius_mm = {a}")
+    if d.camera is not None:
+        _validate_mono(d, where)
+        return
     c = d.cameras
     if (c.width_px, c.height_px) != CAMERA_SIZE_PX:
         raise DesignError(f"{where}: cameras.width_px x height_px must be {CAMERA_SIZE_PX[0]}x{CAMERA_SIZE_PX[1]} "
@@ -500,12 +637,54 @@ def _validate_values(d: SensorDesign, where: str) -> None:
                               f"{c.width_px}x{c.height_px} image (r_d must grow with r out to the corners)")
 
 
+def _validate_mono(d: SensorDesign, where: str) -> None:
+    c = d.camera
+    if not (16 <= c.width_px <= 8192 and 16 <= c.height_px <= 8192):
+        raise DesignError(f"{where}: camera.width_px x height_px must each be in [16, 8192], "
+                          f"got {c.width_px}x{c.height_px}")
+    if not FPS_RANGE[0] < c.fps <= FPS_RANGE[1]:
+        raise DesignError(f"{where}: camera.fps: must be in ({FPS_RANGE[0]:g}, {FPS_RANGE[1]:g}], got {c.fps!r}")
+    lo, hi = FOCAL_PER_WIDTH_RANGE[0] * c.width_px, FOCAL_PER_WIDTH_RANGE[1] * c.width_px
+    for key, f in (("fx_px", c.fx_px), ("fy_px", c.fy_px)):
+        if not lo <= f <= hi:
+            raise DesignError(f"{where}: camera.{key}: must be in [{lo:g}, {hi:g}] px, got {f!r}")
+    if not (0 <= c.cx_px <= c.width_px and 0 <= c.cy_px <= c.height_px):
+        raise DesignError(f"{where}: camera: principal point ({c.cx_px:g}, {c.cy_px:g}) px must lie inside the "
+                          f"{c.width_px}x{c.height_px} image")
+    if max(abs(v) for v in c.dist) > MAX_ABS_DISTORTION:
+        raise DesignError(f"{where}: camera.dist: coefficients must lie in [-{MAX_ABS_DISTORTION:g}, "
+                          f"{MAX_ABS_DISTORTION:g}]")
+    if abs(c.x_mm) >= d.gel.radius_mm or abs(c.y_mm) >= d.gel.radius_mm:
+        raise DesignError(f"{where}: camera.x_mm / y_mm must lie inside gel.radius_mm = {d.gel.radius_mm:g}")
+    if not -180.0 <= c.roll_deg <= 180.0:
+        raise DesignError(f"{where}: camera.roll_deg: must be in [-180, 180], got {c.roll_deg!r}")
+    t = d.twin_params()
+    if not t["bending_ratio"] > 0 or not t["edge_px"] > 0 or t["noise_grey"] < 0 or not t["marker_scale"] > 0:
+        raise DesignError(f"{where}: twin: bending_ratio, edge_px and marker_scale must be > 0, noise_grey >= 0")
+    for key in ("marker_grey", "background_grey"):
+        if not 0 <= t[key] <= 255:
+            raise DesignError(f"{where}: twin.{key}: must be in [0, 255], got {t[key]!r}")
+
+
 def to_dict(design: SensorDesign) -> dict[str, Any]:
     """The design as a plain TOML-shaped mapping (for JSON results and overrides)."""
     raw = dataclasses.asdict(design)
     raw.pop("source_file", None)
-    for side in ("left", "right"):
-        raw["cameras"][side]["dist"] = list(raw["cameras"][side]["dist"])
+    if raw["cameras"] is None:
+        raw.pop("cameras")
+    else:
+        for side in ("left", "right"):
+            raw["cameras"][side]["dist"] = list(raw["cameras"][side]["dist"])
+    if raw["camera"] is None:
+        raw.pop("camera")
+    else:
+        raw["camera"]["dist"] = list(raw["camera"]["dist"])
+    twin = dict(design.twin)
+    raw.pop("twin")
+    if twin:
+        raw["twin"] = twin
+    if raw["pattern"].get("mapping") == "vertical":
+        raw["pattern"].pop("mapping")
     return raw
 
 
@@ -550,3 +729,38 @@ def load_design(name_or_path: str | Path = DEFAULT_DESIGN) -> SensorDesign:
     except tomllib.TOMLDecodeError as exc:
         raise DesignError(f"{path}: not valid TOML: {exc}") from None
     return design_from_dict(raw, source=str(path))
+
+
+def _toml_value(v: Any) -> str:
+    import json
+
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("nan" if v != v else ("inf" if v > 0 else "-inf"))
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False)  # a JSON string is a valid TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise DesignError(f"cannot write {type(v).__name__} to TOML")
+
+
+def to_toml(design: SensorDesign) -> str:
+    """The design as TOML text that :func:`load_design` reads back to an equal design."""
+    raw = to_dict(design)
+    lines = [f"{k} = {_toml_value(v)}" for k, v in raw.items() if not isinstance(v, dict)]
+
+    def table(name: str, d: dict) -> None:
+        lines.append("")
+        lines.append(f"[{name}]")
+        lines.extend(f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict))
+        for k, v in d.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}", v)
+
+    for k, v in raw.items():
+        if isinstance(v, dict):
+            table(k, v)
+    return "\n".join(lines) + "\n"

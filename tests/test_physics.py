@@ -25,7 +25,7 @@ def _press(design, ind, depth, mesh=MeshSpec()):
     return sim, stats, truth
 
 
-@pytest.mark.parametrize("name", list_designs())
+@pytest.mark.parametrize("name", [n for n in list_designs() if not load_design(n).monocular])
 def test_every_design_compiles_steps_and_has_exact_rest_markers(name):
     d = load_design(name)
     sim = SkinSim(d, make_indenter("flat"), mesh=COARSE)

@@ -71,6 +71,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from twin.indenters import make_indenter, parse_params
 
     design = load_design(args.design)
+    if design.monocular:
+        from pipeline.design import DesignError
+
+        raise DesignError(f"design {design.name!r} is monocular (a TacTip dome): `simulate` drives the stereo "
+                          f"modules; its taps run in `stereotactip fit-twin` / `validate` (twin/tactip.py)")
     from twin.gl import setup_gl
 
     setup_gl()   # a missing GL back end fails here, before the physics runs

@@ -1,0 +1,534 @@
+"""``stereotactip fit-twin``: identify what a public TacTip design does not fix from labelled real taps.
+
+Stages (each cached in ``OUT.cache/`` keyed by its inputs, so an interrupted fit resumes):
+
+1. **camera** — the shallowest training tap is simulated with the nominal skin; its pin tips are projected
+   through a camera on the sensor axis; the camera's roll about its axis is found by a 1° grid over the
+   pattern's 60° symmetry (median nearest-marker distance), then focal length, principal point, radial
+   distortion (k1, k2, k3), lateral offset and axial position by robust least squares (soft-L1) on mutual
+   nearest-neighbour matches, re-matched 6 times. The matches give the reference frame's marker ids; every
+   frame is identified against that reference (:func:`pipeline.tactip_id.identify_by_reference`).
+2. **tilt frame** — the robot's tilt axes relative to the pattern (angle about the sensor axis and the
+   handedness of the second tilt): 12 angles x 2 handedness on the 4 most tilted training taps, refined
+   by a bounded 1-D search.
+3. **skin** — the membrane's bending/stretching ratio (log-scale bounded search) and the depth offset of
+   the labels (first touch vs the labelled zero), each by a bounded 1-D search on the training taps.
+4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
+   printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
+5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
+   the real frames' image statistics (the same detector and :func:`pipeline.tactip_id.frame_stats` on twin
+   renders, three fixed-point passes).
+
+The skin, tilt-frame and depth-offset searches score the projected twin pin tips against the identified
+real markers (RMS px over the training frames); the held-out frames are never used here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+
+from pipeline.design import SensorDesign, design_from_dict, load_design, to_dict, to_toml
+from pipeline.detection import detect_markers
+from pipeline.tactip_id import frame_stats, identify_by_reference
+from twin.tactip import DomeSkin, TapPose, check_monocular, project_markers, render_frame
+from twin.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
+
+__all__ = ["FitContext", "apply_params", "cmd_fit", "register"]
+
+CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
+SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
+
+
+def apply_params(design: SensorDesign, cam: dict | None = None, twin: dict | None = None,
+                 name: str | None = None) -> SensorDesign:
+    """A copy of a monocular design with camera values (``CAM_KEYS``) and ``[twin]`` values replaced."""
+    raw = to_dict(design)
+    if cam:
+        c = raw["camera"]
+        for k, v in cam.items():
+            if k == "f_px":
+                c["fx_px"] = c["fy_px"] = float(v)
+            elif k in ("k1", "k2", "k3"):
+                c["dist"][{"k1": 0, "k2": 1, "k3": 4}[k]] = float(v)
+            elif k == "air_gap_mm":
+                raw["optics"]["air_gap_mm"] = float(v)
+            elif k == "separation_mm":
+                continue
+            else:
+                c[k] = float(v)
+    if cam and "separation_mm" in cam:
+        raw["pattern"]["separation_mm"] = float(cam["separation_mm"])
+    if twin:
+        raw["twin"] = {**raw.get("twin", {}), **{k: float(v) for k, v in twin.items()}}
+    if name:
+        raw["name"] = name
+    return design_from_dict(raw, source=design.source_file or "<fit>")
+
+
+def camera_vector(design: SensorDesign) -> np.ndarray:
+    c = design.camera
+    return np.array([c.fx_px, c.cx_px, c.cy_px, c.dist[0], c.dist[1], c.dist[4], c.x_mm, c.y_mm,
+                     design.optics.air_gap_mm, c.roll_deg])
+
+
+class FitContext:
+    """Frames, their detections and identification, and the twin's cached taps."""
+
+    def __init__(self, frames, targets, design: SensorDesign, *, progress: bool = True,
+                 skip_unlabelled: bool = False, log=print):
+        check_monocular(design)
+        self.design = design
+        self.frames = load_tap_frames(frames, targets, design, skip_unlabelled=skip_unlabelled, log=log)
+        self.train, self.held = split_indices(len(self.frames))
+        self.progress = progress
+        self.greys = [read_frame(f.path, design) for f in self.frames]
+        self.blobs = [detect_markers(g) for g in self.greys]
+        for f, b in zip(self.frames, self.blobs):
+            if len(b) < 0.5 * design.marker_count:
+                raise TapDataError(f"frame {f.path.name}: {len(b)} markers detected, the design has "
+                                   f"{design.marker_count}: not a frame of this sensor?")
+        depths = np.array([self.frames[i].pose.depth_mm for i in self.train])
+        self.ref = int(self.train[int(np.argmin(depths))])
+        self.skin = DomeSkin(design)
+        self._taps: dict = {}
+        self.ref_xy: np.ndarray | None = None
+        self.real_xy: list[np.ndarray] = []
+
+    def with_design(self, design: SensorDesign) -> "FitContext":
+        """This context (frames, detections, split) for another design (its own skin and tap cache)."""
+        import copy
+
+        c = copy.copy(self)
+        c.design = design
+        c.skin = DomeSkin(design)
+        c._taps = {}
+        return c
+
+    def key(self) -> str:
+        return digest(*[f.path for f in self.frames], [f.pose for f in self.frames],
+                      json.dumps(to_dict(self.design), sort_keys=True, default=str))
+
+    # ----- twin taps ----------------------------------------------------------------------
+    def tap(self, i: int, twin: dict) -> tuple[np.ndarray, np.ndarray]:
+        params = {**self.design.twin_params(), **twin}
+        k = (i, tuple(sorted((a, round(b, 9)) for a, b in params.items()
+                             if a in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror"))))
+        if k not in self._taps:
+            X, info = self.skin.tap(self.frames[i].pose, params)
+            if not info["converged"]:
+                raise TapDataError(f"frame {self.frames[i].path.name}: the tap did not converge "
+                                   f"(iterations {info['iterations']}, penetration {info['penetration_max_mm']:.3f} mm)")
+            self._taps[k] = self.skin.markers(X)
+        return self._taps[k]
+
+    # ----- identification -----------------------------------------------------------------
+    def set_reference(self, ref_xy: np.ndarray) -> None:
+        """Identify every frame: frames in order of pose distance from the reference, each against the
+        already identified frame nearest in pose (its gaps filled from the reference), so a chain of small
+        steps carries the ids to the deepest, most tilted taps."""
+        self.ref_xy = ref_xy
+        self.real_xy = identify_chain(self.blobs, [f.pose for f in self.frames], self.ref, ref_xy)
+
+    def residuals(self, design: SensorDesign, idx, twin: dict) -> np.ndarray:
+        out = []
+        for i in idx:
+            p, _ = self.tap(i, twin)
+            uv = project_markers(design, p)
+            r = uv - self.real_xy[i]
+            out.append(r[np.all(np.isfinite(r), axis=1)].ravel())
+        return np.concatenate(out)
+
+    def rms(self, design: SensorDesign, idx, twin: dict) -> float:
+        r = self.residuals(design, idx, twin)
+        return float(np.sqrt(np.mean(r * r) * 2)) if len(r) else float("inf")
+
+
+def _pose_vec(p: TapPose) -> np.ndarray:
+    return np.array([p.depth_mm, p.tilt_x_deg / 5.0, p.tilt_y_deg / 5.0])
+
+
+def identify_chain(blobs, poses, ref: int, ref_xy: np.ndarray) -> list[np.ndarray]:
+    """Identified positions (M, 2, NaN where unidentified) of every frame, see FitContext.set_reference."""
+    n = len(blobs)
+    out: list[np.ndarray | None] = [None] * n
+    out[ref] = ref_xy.copy()
+    done = [ref]
+    P = np.array([_pose_vec(p) for p in poses])
+    order = np.argsort(np.linalg.norm(P - P[ref], axis=1))
+    for i in order:
+        if out[i] is not None:
+            continue
+        j = done[int(np.argmin(np.linalg.norm(P[done] - P[i], axis=1)))]
+        guide = np.where(np.isfinite(out[j]), out[j], ref_xy)
+        idx = identify_by_reference(blobs[i].xy_px, guide)
+        xy = np.full((len(ref_xy), 2), np.nan)
+        xy[idx >= 0] = blobs[i].xy_px[idx[idx >= 0]]
+        out[i] = xy
+        done.append(int(i))
+    return out
+
+
+# ----- stage 1/4: camera ------------------------------------------------------------------
+
+def _cam_residuals(vec, ctx: FitContext, pts3d, obs, base: SensorDesign):
+    d = apply_params(base, dict(zip(CAM_KEYS, vec)))
+    r = []
+    for p, o in zip(pts3d, obs):
+        uv = project_markers(d, p)
+        r.append((uv - o).ravel())
+    return np.concatenate(r)
+
+
+def _bounds(vec):
+    lo = np.array([60, 200, 120, -1.0, -1.0, -1.0, -5, -5, 0.5, -180.0])
+    hi = np.array([1500, 440, 360, 1.0, 1.0, 1.0, 5, 5, 30.0, 180.0])
+    return lo, hi
+
+
+def fit_camera_reference(ctx: FitContext, twin: dict) -> tuple[SensorDesign, np.ndarray, dict]:
+    """Stage 1: camera from the reference tap; returns the design, the reference ids' real positions
+    (M, 2, NaN where unmatched) and a report."""
+    design = ctx.design
+    p, _ = ctx.tap(ctx.ref, twin)
+    real = ctx.blobs[ctx.ref].xy_px
+    from scipy.spatial import cKDTree
+    tree = cKDTree(real)
+    centre = real.mean(axis=0)
+    best = None
+    # the focal length sets the pattern's image size: scale it to the real pattern's extent first
+    for roll in np.arange(0.0, 60.0, 1.0):
+        d = apply_params(design, {"cx_px": centre[0], "cy_px": centre[1], "roll_deg": roll})
+        uv = project_markers(d, p)
+        f0 = d.camera.fx_px * np.median(np.hypot(*(real - centre).T)) / np.median(np.hypot(*(uv - centre).T))
+        d = apply_params(d, {"f_px": f0})
+        uv = project_markers(d, p)
+        score = float(np.median(tree.query(uv)[0]))
+        if best is None or score < best[0]:
+            best = (score, d)
+    d = best[1]
+    vec = camera_vector(d)
+    lo, hi = _bounds(vec)
+    vec = np.clip(vec, lo + 1e-9, hi - 1e-9)
+    k3 = CAM_KEYS.index("k3")
+    for it in range(6):
+        uv = project_markers(apply_params(design, dict(zip(CAM_KEYS, vec))), p)
+        idx = identify_by_reference(real, uv)
+        ok = idx >= 0
+        obs = np.full_like(uv, np.nan)
+        obs[ok] = real[idx[ok]]
+        # k3 stays 0 until the matches have settled (freed early it trades off against k1, k2 and
+        # lets the inner-ring matches pull the outer rings off their pins)
+        free = np.ones(len(vec), bool)
+        free[k3] = it >= 3
+        full = vec.copy()
+
+        def fun(x, full=full, free=free, ok=ok, obs=obs):
+            full[free] = x
+            return _cam_residuals(full, ctx, [p[ok]], [obs[ok]], design)
+
+        res = least_squares(fun, vec[free], bounds=(lo[free], hi[free]), loss="soft_l1", f_scale=1.0,
+                            x_scale="jac")
+        vec = vec.copy()
+        vec[free] = res.x
+    fitted = apply_params(design, dict(zip(CAM_KEYS, vec)))
+    uv = project_markers(fitted, p)
+    idx = identify_by_reference(real, uv)
+    ref_xy = np.full_like(uv, np.nan)
+    ref_xy[idx >= 0] = real[idx[idx >= 0]]
+    report = {"roll_grid_median_px": best[0], "matched": int((idx >= 0).sum()),
+              "rms_px": float(np.sqrt(np.mean(np.sum((uv[idx >= 0] - ref_xy[idx >= 0]) ** 2, axis=1))))}
+    return fitted, ref_xy, report
+
+
+LAYOUT_SEPARATIONS_MM = tuple(np.round(np.arange(1.8, 2.85, 0.1), 2))
+
+
+def fit_layout(ctx: FitContext, twin: dict, bar=None) -> tuple[float, list]:
+    """Stage 0: the pins' arc spacing on the dome (the published 331-pin CAD was not available): for each
+    candidate the stage-1 camera fit, scored by the mean distance of every real reference marker to the
+    nearest projected pin tip, capped at 8 px (unmatched markers cost the cap)."""
+    from scipy.spatial import cKDTree
+
+    real = ctx.blobs[ctx.ref].xy_px
+    scores = []
+    for sep in LAYOUT_SEPARATIONS_MM:
+        try:
+            c = ctx.with_design(apply_params(ctx.design, {"separation_mm": sep}))
+        except Exception:  # noqa: BLE001 - a spacing the design cannot take (pins would touch): skipped
+            continue
+        d, _, _ = fit_camera_reference(c, twin)
+        p, _ = c.tap(c.ref, twin)
+        dist = cKDTree(project_markers(d, p)).query(real)[0]
+        scores.append((float(np.mean(np.minimum(dist, 8.0))), float(sep)))
+        if bar is not None:
+            bar.update(1)
+    return min(scores)[1], scores
+
+
+def fit_camera_all(ctx: FitContext, design: SensorDesign, twin: dict) -> tuple[SensorDesign, dict]:
+    """Stage 4: the camera on all training taps with the fitted skin; uncertainty from the Jacobian."""
+    pts, obs = [], []
+    for i in ctx.train:
+        p, _ = ctx.tap(i, twin)
+        ok = np.all(np.isfinite(ctx.real_xy[i]), axis=1)
+        pts.append(p[ok])
+        obs.append(ctx.real_xy[i][ok])
+    vec = camera_vector(design)
+    lo, hi = _bounds(vec)
+    res = least_squares(_cam_residuals, np.clip(vec, lo + 1e-9, hi - 1e-9), args=(ctx, pts, obs, design),
+                        bounds=(lo, hi), loss="soft_l1", f_scale=1.0, x_scale="jac")
+    J = res.jac
+    dof = max(len(res.fun) - len(res.x), 1)
+    s2 = 2 * float(res.cost) / dof
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        sd = np.full(len(res.x), np.nan)
+    fitted = apply_params(design, dict(zip(CAM_KEYS, res.x)))
+    r = res.fun.reshape(-1, 2)
+    return fitted, {"values": dict(zip(CAM_KEYS, map(float, res.x))), "sd": dict(zip(CAM_KEYS, map(float, sd))),
+                    "rms_px": float(np.sqrt(np.mean(np.sum(r * r, axis=1)))), "n_obs": int(len(r)),
+                    "converged": bool(res.success), "message": str(res.message)}
+
+
+# ----- stages 2/3: physics ------------------------------------------------------------------
+
+def _search_set(ctx: FitContext) -> list[int]:
+    tr = list(ctx.train)
+    if len(tr) <= SEARCH_FRAMES:
+        return tr
+    pick = np.linspace(0, len(tr) - 1, SEARCH_FRAMES).round().astype(int)
+    return [tr[k] for k in pick]
+
+
+def _curvature_sd(f, x, h, f0, n_obs):
+    """1-sigma of a 1-D least-squares parameter from the objective's curvature (RMS objective)."""
+    try:
+        fp, fm = f(x + h), f(x - h)
+    except Exception:  # noqa: BLE001 - outside the model's range: no estimate
+        return float("nan")
+    # SSE = n * rms^2; var(x) = 2 sigma^2 / SSE''
+    sse = lambda v: n_obs * v * v  # noqa: E731
+    curv = (sse(fp) - 2 * sse(f0) + sse(fm)) / (h * h)
+    sigma2 = sse(f0) / max(n_obs - 1, 1)
+    return float(math.sqrt(2 * sigma2 / curv)) if curv > 0 else float("nan")
+
+
+def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple[dict, dict]:
+    twin = dict(twin)
+    tilted = sorted(ctx.train, key=lambda i: -np.hypot(ctx.frames[i].pose.tilt_x_deg, ctx.frames[i].pose.tilt_y_deg))[:4]
+    grid = []
+    for mirror in (0.0, 1.0):
+        for psi in np.arange(-180.0, 180.0, 30.0):
+            grid.append((ctx.rms(design, tilted, {**twin, "tilt_frame_deg": psi, "tilt_mirror": mirror}), psi, mirror))
+            bar.update(1)
+    _, psi0, mirror = min(grid)
+    twin["tilt_mirror"] = mirror
+    search = _search_set(ctx)
+    f_psi = lambda v: ctx.rms(design, search, {**twin, "tilt_frame_deg": v})  # noqa: E731
+    r = minimize_scalar(f_psi, bounds=(psi0 - 30, psi0 + 30), method="bounded", options={"xatol": 1.0, "maxiter": 12})
+    twin["tilt_frame_deg"] = float((r.x + 180) % 360 - 180)
+    bar.update(1)
+    f_b = lambda lv: ctx.rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
+    r = minimize_scalar(f_b, bounds=(-2.5, 1.5), method="bounded", options={"xatol": 0.05, "maxiter": 14})
+    twin["bending_ratio"] = float(10 ** r.x)
+    bar.update(1)
+    f_d = lambda v: ctx.rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
+    r = minimize_scalar(f_d, bounds=(-1.5, 1.5), method="bounded", options={"xatol": 0.02, "maxiter": 12})
+    twin["depth_offset_mm"] = float(r.x)
+    bar.update(1)
+    n_obs = len(ctx.residuals(design, search, twin)) // 2
+    f0 = ctx.rms(design, search, twin)
+    sd = {"log10_bending_ratio": _curvature_sd(f_b, math.log10(twin["bending_ratio"]), 0.15, f0, n_obs),
+          "depth_offset_mm": _curvature_sd(f_d, twin["depth_offset_mm"], 0.1, f0, n_obs),
+          "tilt_frame_deg": _curvature_sd(f_psi, twin["tilt_frame_deg"], 3.0, f0, n_obs)}
+    bar.update(1)
+    return twin, {"grid": [[float(a), float(b), float(c)] for a, b, c in grid], "rms_px_search": f0, "sd": sd,
+                  "search_frames": [ctx.frames[i].path.name for i in search]}
+
+
+# ----- stage 5: appearance -----------------------------------------------------------------
+
+def fit_appearance(ctx: FitContext, design: SensorDesign, twin: dict) -> tuple[dict, dict]:
+    twin = dict(twin)
+    pick = _search_set(ctx)[:4]
+    real = [frame_stats(ctx.greys[i], ctx.blobs[i]) for i in pick]
+    target = {k: float(np.median([s[k] for s in real])) for k in ("radius_px", "contrast", "background", "noise")}
+    # radial shading: real marker core brightness against the squared normalised image radius
+    cam = design.camera
+    vals, rho2 = [], []
+    for i in pick:
+        g = ctx.greys[i].astype(np.float64)
+        for u, v in ctx.blobs[i].xy_px:
+            vals.append(g[int(round(v)) - 1:int(round(v)) + 2, int(round(u)) - 1:int(round(u)) + 2].mean())
+            rho2.append(((u - cam.cx_px) ** 2 + (v - cam.cy_px) ** 2) / (0.5 * cam.height_px) ** 2)
+    A = np.column_stack([np.ones(len(rho2)), rho2])
+    a0, a1 = np.linalg.lstsq(A, np.asarray(vals), rcond=None)[0]
+    twin["marker_shading"] = float(a1 / a0) if a0 > 0 else 0.0
+    twin["background_grey"] = target["background"]
+    twin["marker_grey"] = float(np.clip(a0, 1, 255))
+    twin["noise_grey"] = max(target["noise"], 0.0)
+    history = []
+    for _ in range(3):
+        d = apply_params(design, twin=twin)
+        sims = []
+        for i in pick:
+            p, ax = ctx.tap(i, twin)
+            img = render_frame(d, p, ax, seed=i)
+            sims.append(frame_stats(img, detect_markers(img)))
+        got = {k: float(np.median([s[k] for s in sims if s[k] is not None])) for k in target}
+        history.append(got)
+        twin["marker_scale"] = float(np.clip(twin["marker_scale"] * target["radius_px"] / got["radius_px"], 0.3, 3.0))
+        twin["marker_grey"] = float(np.clip(twin["marker_grey"] + (target["contrast"] - got["contrast"]), 1, 255))
+        twin["background_grey"] = float(np.clip(twin["background_grey"] + (target["background"] - got["background"]), 0, 255))
+        if got["noise"] > 0:
+            twin["noise_grey"] = float(max(twin["noise_grey"] * target["noise"] / got["noise"], 0.0))
+    return twin, {"real": target, "twin_passes": history}
+
+
+# ----- the command ---------------------------------------------------------------------------
+
+def _cached(cache: Path, name: str, key: str, fn):
+    path = cache / f"{name}.json"
+    if path.is_file():
+        data = json.loads(path.read_text())
+        if data.get("key") == key:
+            return data["value"], True
+    value = fn()
+    cache.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"key": key, "value": value}, indent=1))
+    tmp.replace(path)
+    return value, False
+
+
+def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
+             skip_unlabelled: bool = False) -> dict:
+    from tqdm import tqdm
+
+    design = load_design(design_name)
+    check_monocular(design)
+    ctx = FitContext(frames, targets, design, progress=progress, skip_unlabelled=skip_unlabelled, log=log)
+    cache = Path(str(out) + ".cache")
+    base_key = ctx.key()
+    t0 = time.time()
+    log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
+        f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
+        f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
+    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 5, desc="fit-twin", unit="step", disable=not progress)
+    twin0 = design.twin_params()
+
+    def stage0():
+        sep, scores = fit_layout(ctx, twin0, bar)
+        return {"separation_mm": sep, "scores": scores}
+
+    s0, hit = _cached(cache, "0_layout", base_key, stage0)
+    if hit:
+        bar.update(len(LAYOUT_SEPARATIONS_MM))
+    log(f"  pin spacing on the dome{' (cached)' if hit else ''}: {s0['separation_mm']:.2f} mm "
+        f"(scores " + ", ".join(f"{b:.1f}: {a:.2f}" for a, b in s0["scores"]) + ")")
+    design = apply_params(design, {"separation_mm": s0["separation_mm"]})
+    ctx = ctx.with_design(design)
+
+    def stage1():
+        d, ref_xy, rep = fit_camera_reference(ctx, twin0)
+        return {"cam": dict(zip(CAM_KEYS, map(float, camera_vector(d)))), "ref_xy": ref_xy.tolist(), "report": rep}
+
+    s1, hit = _cached(cache, "1_camera_reference", digest(base_key, s0["separation_mm"]), stage1)
+    bar.update(1)
+    d1 = apply_params(design, s1["cam"])  # (design carries the fitted spacing)
+    ctx.set_reference(np.asarray(s1["ref_xy"], dtype=np.float64))
+    ident = [int(np.isfinite(x[:, 0]).sum()) for x in ctx.real_xy]
+    log(f"  camera from the reference tap{' (cached)' if hit else ''}: {s1['report']['matched']} markers matched, "
+        f"RMS {s1['report']['rms_px']:.2f} px; identified per frame: min {min(ident)}, median "
+        f"{int(np.median(ident))} of {design.marker_count}")
+
+    def stage23():
+        tw, rep = fit_physics(ctx, d1, twin0, bar)
+        return {"twin": tw, "report": rep}
+
+    s23, hit = _cached(cache, "2_physics", digest(base_key, s1["cam"]), stage23)
+    if hit:
+        bar.update(24 + 4)
+    twin = s23["twin"]
+
+    def stage4():
+        d, rep = fit_camera_all(ctx, d1, twin)
+        return {"cam": rep["values"], "report": rep}
+
+    s4, hit = _cached(cache, "4_camera_all", digest(base_key, s1["cam"], twin), stage4)
+    bar.update(1)
+    d4 = apply_params(design, s4["cam"])
+
+    def stage5():
+        tw, rep = fit_appearance(ctx, d4, twin)
+        return {"twin": tw, "report": rep}
+
+    s5, hit = _cached(cache, "5_appearance", digest(base_key, s4["cam"], twin), stage5)
+    bar.update(1)
+    bar.close()
+    fitted = apply_params(d4, twin=s5["twin"], name=design.name + "_fitted")
+    train_rms = ctx.rms(fitted, ctx.train, s5["twin"])
+    held_rms = ctx.rms(fitted, ctx.held, s5["twin"])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = (f"# Fitted by `stereotactip fit-twin` from {len(ctx.frames)} labelled frames "
+              f"({len(ctx.train)} train, {len(ctx.held)} held out).\n"
+              f"# Pin-tip RMS (projected twin vs identified real markers): train {train_rms:.2f} px, "
+              f"held out {held_rms:.2f} px.\n")
+    out.write_text(header + to_toml(fitted))
+    phys = s23["report"]
+    summary = {
+        "design": design.name, "out": str(out), "frames": len(ctx.frames),
+        "train": [ctx.frames[i].path.name for i in ctx.train], "held_out": [ctx.frames[i].path.name for i in ctx.held],
+        "reference": ctx.frames[ctx.ref].path.name, "camera": s4["report"], "physics": {
+            "values": {k: twin[k] for k in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror")},
+            "sd": phys["sd"], "rms_px_search": phys["rms_px_search"]},
+        "appearance": {"values": {k: s5["twin"][k] for k in ("marker_grey", "marker_shading", "background_grey",
+                                                              "edge_px", "noise_grey", "marker_scale")},
+                       "report": s5["report"]},
+        "residuals": {"train_rms_px": train_rms, "held_out_rms_px": held_rms},
+        "separation_mm": s0["separation_mm"],
+        "fitted_parameters": 1 + len(CAM_KEYS) + 4 + 5, "seconds": time.time() - t0,
+    }
+    (Path(str(out) + ".fit.json")).write_text(json.dumps(summary, indent=1))
+    c = s4["report"]
+    log("camera (value ± 1 sd):")
+    for k in CAM_KEYS:
+        log(f"  {k:12s} {c['values'][k]:10.4f} ± {c['sd'][k]:.4f}")
+    log(f"  reprojection RMS {c['rms_px']:.2f} px over {c['n_obs']} marker observations "
+        f"({'converged' if c['converged'] else 'NOT CONVERGED: ' + c['message']})")
+    log("skin and tap:")
+    log(f"  bending_ratio   {twin['bending_ratio']:.4g} (log10 sd {phys['sd']['log10_bending_ratio']:.3f})")
+    log(f"  depth_offset_mm {twin['depth_offset_mm']:.3f} ± {phys['sd']['depth_offset_mm']:.3f}")
+    log(f"  tilt_frame_deg  {twin['tilt_frame_deg']:.1f} ± {phys['sd']['tilt_frame_deg']:.1f}, "
+        f"second tilt {'mirrored' if twin['tilt_mirror'] else 'as labelled'}")
+    log("appearance: " + ", ".join(f"{k} {v:.3g}" for k, v in summary["appearance"]["values"].items()))
+    log(f"residuals: train {train_rms:.2f} px, held out {held_rms:.2f} px (pin-tip RMS); wrote {out}")
+    if not c["converged"]:
+        log("warning: the camera fit did not converge; the fitted file is a partial result")
+    return summary
+
+
+def register(sub) -> None:
+    p = sub.add_parser("fit-twin", help="fit a monocular TacTip twin (camera, skin, appearance) to labelled real taps")
+    p.add_argument("frames", help="folder (or image) of real frames")
+    p.add_argument("--targets", required=True, help="targets CSV (pose_3 depth mm, pose_4/pose_5 tilt deg)")
+    p.add_argument("--design", default="tactip331", help="monocular design name or TOML path")
+    p.add_argument("--out", required=True, help="fitted design TOML to write")
+    p.add_argument("--skip-unlabelled", action="store_true", help="leave out frames without a targets row "
+                   "(named on the console) instead of refusing them")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_fit)
+
+
+def cmd_fit(args) -> int:
+    fit_twin(args.frames, args.targets, args.design, Path(args.out), progress=not args.no_progress,
+             skip_unlabelled=args.skip_unlabelled)
+    return 0

@@ -1,0 +1,289 @@
+"""``stereotactip validate``: the twin against labelled real frames of a monocular TacTip.
+
+For each real frame the twin taps the labelled pose and renders it; the real and the twin frame go
+through the same detector (:func:`pipeline.detection.detect_markers`) and the same identification
+(:func:`pipeline.tactip_id.identify_by_reference`, each against its own reference: the shallowest training
+tap, real or twin; the real reference takes its ids from the twin's projected pin tips, the twin's from its
+truth). Per frame: marker count, apparent radius, contrast, background, spacing and noise of both; per
+marker the position error twin − real (px) and the displacement error (twin − twin reference) − (real −
+real reference). Baselines on the same held-out frames: (a) static — each marker where the training frames
+put it on average; (b) ridge regression from the pose to every marker position, on [1, d, tx, ty, d·tx,
+d·ty, tx·ty, d², tx², ty²] (features standardised, intercept free, λ = 1e-3 × the number of training frames), fitted per marker on the training frames.
+Writes an overlay PNG per frame, ``summary.json``, ``report.md``, ``report.html`` and ``errors.png``.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.design import load_design
+from pipeline.detection import detect_markers
+from pipeline.tactip_id import frame_stats, identify_by_reference
+from benchmarks.tactip_fit import CAM_KEYS, FitContext, identify_chain
+from twin.tactip import project_markers, render_frame
+
+__all__ = ["validate", "register", "cmd_validate", "ridge_features"]
+
+RIDGE_LAMBDA = 1e-3
+STAT_KEYS = ("count", "radius_px", "contrast", "spacing_px", "background", "noise")
+
+
+def ridge_features(poses) -> np.ndarray:
+    P = np.array([[p.depth_mm, p.tilt_x_deg / 10.0, p.tilt_y_deg / 10.0] for p in poses])
+    d, tx, ty = P.T
+    return np.column_stack([np.ones(len(P)), d, tx, ty, d * tx, d * ty, tx * ty, d * d, tx * tx, ty * ty])
+
+
+def baselines(real_xy: list[np.ndarray], poses, train, held) -> dict[str, list[np.ndarray]]:
+    """Held-out predictions (M, 2) per held-out frame of the static and ridge baselines."""
+    Y = np.stack([real_xy[i] for i in train])            # (T, M, 2)
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # markers never identified stay NaN
+            static = np.nanmean(Y, axis=0)
+    F = ridge_features([poses[i] for i in train])[:, 1:]
+    Fh = ridge_features([poses[i] for i in held])[:, 1:]
+    mu, sd = F.mean(axis=0), F.std(axis=0) + 1e-12
+    F, Fh = (F - mu) / sd, (Fh - mu) / sd          # standardised; the intercept is not penalised
+    M = Y.shape[1]
+    ridge = np.full((len(held), M, 2), np.nan)
+    for m in range(M):
+        ok = np.all(np.isfinite(Y[:, m]), axis=1)
+        if ok.sum() < F.shape[1] + 2:
+            continue
+        A, y = F[ok], Y[ok, m]
+        am, ym = A.mean(axis=0), y.mean(axis=0)
+        coef = np.linalg.solve((A - am).T @ (A - am) + RIDGE_LAMBDA * ok.sum() * np.eye(A.shape[1]), (A - am).T @ (y - ym))
+        ridge[:, m] = ym + (Fh - am) @ coef
+    return {"static": [static] * len(held), "ridge": list(ridge)}
+
+
+def _rms(err: np.ndarray) -> float | None:
+    e = err[np.all(np.isfinite(err), axis=1)]
+    return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else None
+
+
+def _overlay(real: np.ndarray, twin: np.ndarray, rxy: np.ndarray, txy: np.ndarray, title: str) -> np.ndarray:
+    a = cv2.cvtColor(real, cv2.COLOR_GRAY2BGR)
+    b = cv2.cvtColor(twin, cv2.COLOR_GRAY2BGR)
+    for img in (a, b):
+        for (u, v), (p, q) in zip(rxy, txy):
+            if np.isfinite(u) and np.isfinite(p):
+                cv2.line(img, (int(round(u)), int(round(v))), (int(round(p)), int(round(q))), (0, 255, 255), 1)
+            if np.isfinite(u):
+                cv2.circle(img, (int(round(u)), int(round(v))), 3, (0, 200, 0), 1)
+            if np.isfinite(p):
+                cv2.drawMarker(img, (int(round(p)), int(round(q))), (0, 0, 255), cv2.MARKER_CROSS, 6, 1)
+    out = np.hstack([a, b])
+    cv2.putText(out, title, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (255, 255, 255), 2)
+    cv2.putText(out, title, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1)
+    cv2.putText(out, "real (green o) | twin (red +), yellow: twin - real", (8, 470), cv2.FONT_HERSHEY_SIMPLEX,
+                0.45, (255, 255, 255), 1)
+    return out
+
+
+def validate(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
+             skip_unlabelled: bool = False) -> dict:
+    from tqdm import tqdm
+
+    t0 = time.time()
+    design = load_design(design_name)
+    ctx = FitContext(frames, targets, design, progress=progress, skip_unlabelled=skip_unlabelled, log=log)
+    tw = design.twin_params()
+    out.mkdir(parents=True, exist_ok=True)
+    n = len(ctx.frames)
+    held_set = set(int(i) for i in ctx.held)
+    # real reference ids: the real reference frame's markers nearest the twin's projected pin tips
+    p_ref, _ = ctx.tap(ctx.ref, tw)
+    uv_ref = project_markers(design, p_ref)
+    idx = identify_by_reference(ctx.blobs[ctx.ref].xy_px, uv_ref)
+    ref_real = np.full_like(uv_ref, np.nan)
+    ref_real[idx >= 0] = ctx.blobs[ctx.ref].xy_px[idx[idx >= 0]]
+    ctx.set_reference(ref_real)
+    # twin renders, detections; twin reference ids from its truth
+    twin_imgs, twin_blobs, truth_uv = [None] * n, [None] * n, [None] * n
+    bar = tqdm(range(n), desc="validate", unit="frame", disable=not progress)
+    for i in bar:
+        p, ax = ctx.tap(i, tw)
+        twin_imgs[i] = render_frame(design, p, ax, seed=1000 + i)
+        twin_blobs[i] = detect_markers(twin_imgs[i])
+        truth_uv[i] = project_markers(design, p)
+    idx = identify_by_reference(twin_blobs[ctx.ref].xy_px, truth_uv[ctx.ref])
+    ref_twin = np.full_like(uv_ref, np.nan)
+    ref_twin[idx >= 0] = twin_blobs[ctx.ref].xy_px[idx[idx >= 0]]
+    # the same chained identification as the real frames (pose order, nearest identified pose)
+    twin_xy = identify_chain(twin_blobs, [f.pose for f in ctx.frames], ctx.ref, ref_twin)
+    real_xy = ctx.real_xy
+    poses = [f.pose for f in ctx.frames]
+    base = baselines(real_xy, poses, ctx.train, ctx.held)
+    per_frame = []
+    held_err = {"twin": [], "twin_truth": [], "static": [], "ridge": []}
+    disp_err_held = []
+    for i, f in enumerate(ctx.frames):
+        rs = frame_stats(ctx.greys[i], ctx.blobs[i])
+        ts = frame_stats(twin_imgs[i], twin_blobs[i])
+        err = twin_xy[i] - real_xy[i]
+        derr = (twin_xy[i] - ref_twin) - (real_xy[i] - ref_real)
+        ok = np.all(np.isfinite(err), axis=1)
+        e = np.linalg.norm(err[ok], axis=1)
+        row = {"frame": f.path.name, "split": "held_out" if i in held_set else "train",
+               "depth_mm": f.pose.depth_mm, "tilt_x_deg": f.pose.tilt_x_deg, "tilt_y_deg": f.pose.tilt_y_deg,
+               "real": rs, "twin": ts,
+               "identified_real": int(np.isfinite(real_xy[i][:, 0]).sum()),
+               "identified_twin": int(np.isfinite(twin_xy[i][:, 0]).sum()), "compared": int(ok.sum()),
+               "position_rms_px": _rms(err), "position_median_px": float(np.median(e)) if len(e) else None,
+               "position_p95_px": float(np.percentile(e, 95)) if len(e) else None,
+               "displacement_rms_px": _rms(derr),
+               "real_displacement_rms_px": _rms(real_xy[i] - ref_real)}
+        if i in held_set:
+            k = list(ctx.held).index(i)
+            row["static_rms_px"] = _rms(base["static"][k] - real_xy[i])
+            row["ridge_rms_px"] = _rms(base["ridge"][k] - real_xy[i])
+            row["twin_truth_rms_px"] = _rms(truth_uv[i] - real_xy[i])
+            held_err["twin"].append(err)
+            held_err["twin_truth"].append(truth_uv[i] - real_xy[i])
+            held_err["static"].append(base["static"][k] - real_xy[i])
+            held_err["ridge"].append(base["ridge"][k] - real_xy[i])
+            disp_err_held.append(derr)
+        per_frame.append(row)
+        ov = _overlay(ctx.greys[i], twin_imgs[i], real_xy[i], twin_xy[i],
+                      f"{f.path.name} [{row['split']}] d={f.pose.depth_mm:.2f} mm tilt=({f.pose.tilt_x_deg:.1f}, "
+                      f"{f.pose.tilt_y_deg:.1f}) deg  RMS {row['position_rms_px'] or float('nan'):.2f} px")
+        cv2.imwrite(str(out / f"overlay_{f.path.stem}.png"), ov)
+    # held-out figures: RMS over all held-out marker observations compared by each method
+    held = {k: _rms(np.concatenate(v)) for k, v in held_err.items()}
+    # the same markers for all methods: those the twin identified too
+    common = [np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1) & np.all(np.isfinite(c), axis=1)
+              for a, b, c in zip(held_err["twin"], held_err["static"], held_err["ridge"])]
+    held_common = {k: _rms(np.concatenate([e[m] for e, m in zip(v, common)])) for k, v in held_err.items()}
+    held["displacement_twin"] = _rms(np.concatenate(disp_err_held))
+
+    def med(split, who, key):
+        vals = [r[who][key] for r in per_frame if r[who][key] is not None and (split is None or r["split"] == split)]
+        return float(np.median(vals)) if vals else None
+
+    stats = {k: {"real": med(None, "real", k), "twin": med(None, "twin", k)} for k in STAT_KEYS}
+    for k, v in stats.items():
+        v["relative_difference"] = (abs(v["twin"] - v["real"]) / abs(v["real"])
+                                    if v["real"] not in (None, 0) and v["twin"] is not None else None)
+    n_params = {"twin": 1 + len(CAM_KEYS) + 4, "static": 2 * design.marker_count,
+                "ridge": 2 * design.marker_count * ridge_features(poses[:1]).shape[1]}
+    goals = {
+        "twin_le_half_static": held_common["twin"] is not None and held_common["twin"] <= 0.5 * held_common["static"],
+        "twin_within_1p5_ridge": held_common["twin"] is not None and held_common["twin"] <= 1.5 * held_common["ridge"],
+        "image_stats_within_10pct": all((stats[k]["relative_difference"] or 1.0) <= 0.10
+                                        for k in ("count", "radius_px", "contrast", "spacing_px")),
+    }
+    summary = {"design": design.name, "frames": n, "train": len(ctx.train), "held_out": len(ctx.held),
+               "held_out_frames": [ctx.frames[i].path.name for i in ctx.held],
+               "reference": ctx.frames[ctx.ref].path.name,
+               "held_out_rms_px": held, "held_out_rms_px_common_markers": held_common,
+               "fitted_position_parameters": n_params, "image_stats_median": stats, "goals": goals,
+               "per_frame": per_frame, "seconds": time.time() - t0}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    _plot(out, held_err, per_frame)
+    _report(out, summary)
+    log(f"validate: {n} frames ({len(ctx.held)} held out), reference {summary['reference']}")
+    log("held-out marker RMS (px, markers identified by all methods): " + ", ".join(
+        f"{k} {v:.2f}" for k, v in held_common.items() if v is not None))
+    log(f"held-out displacement RMS error of the twin: {held['displacement_twin']:.2f} px")
+    for k in STAT_KEYS:
+        s = stats[k]
+        log(f"  {k:11s} real {s['real']:.3g}  twin {s['twin']:.3g}  ({100 * (s['relative_difference'] or 0):.1f} %)")
+    log("goals: " + ", ".join(f"{k} {'MET' if v else 'not met'}" for k, v in goals.items()))
+    log(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'summary.json'} and {n} overlays")
+    return summary
+
+
+def _plot(out: Path, held_err, per_frame) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for k, c in (("twin", "C3"), ("static", "C0"), ("ridge", "C2")):
+        e = np.concatenate(held_err[k])
+        e = np.linalg.norm(e[np.all(np.isfinite(e), axis=1)], axis=1)
+        ax[0].hist(e, bins=np.linspace(0, 20, 41), histtype="step", color=c, label=f"{k} (median {np.median(e):.2f})")
+    ax[0].set_xlabel("held-out marker position error (px)")
+    ax[0].set_ylabel("markers")
+    ax[0].legend()
+    for k, c in (("radius_px", "C0"), ("contrast", "C1"), ("spacing_px", "C2")):
+        r = [p["real"][k] for p in per_frame]
+        t = [p["twin"][k] for p in per_frame]
+        ax[1].scatter(r, t, s=10, color=c, label=k)
+    lim = ax[1].get_xlim()
+    ax[1].set_xscale("log")
+    ax[1].set_yscale("log")
+    ax[1].plot([1, 300], [1, 300], "k:", lw=0.8)
+    ax[1].set_xlabel("real frame (median over markers)")
+    ax[1].set_ylabel("twin frame")
+    ax[1].legend()
+    del lim
+    fig.tight_layout()
+    fig.savefig(out / "errors.png", dpi=110)
+    plt.close(fig)
+
+
+def _report(out: Path, s: dict) -> None:
+    h, hc = s["held_out_rms_px"], s["held_out_rms_px_common_markers"]
+    lines = [f"# Twin vs real frames: {s['design']}", "",
+             f"{s['frames']} frames, {s['train']} train / {s['held_out']} held out "
+             f"({', '.join(s['held_out_frames'])}); reference {s['reference']}.", "",
+             "## Held-out marker position RMS (px)", "",
+             "| method | fitted position parameters | RMS, markers all methods identify | RMS, all its markers |",
+             "| --- | --- | --- | --- |"]
+    for k in ("twin", "static", "ridge"):
+        lines.append(f"| {k} | {s['fitted_position_parameters'][k]} | {hc[k]:.2f} | {h[k]:.2f} |")
+    lines += ["", f"Twin pin tips projected directly (no render/detect): {h['twin_truth']:.2f} px. "
+              f"Twin displacement error (vs each reference): {h['displacement_twin']:.2f} px.", "",
+              "Goals: " + ", ".join(f"{k}: **{'met' if v else 'not met'}**" for k, v in s["goals"].items()), "",
+              "## Image statistics (median over frames)", "", "| statistic | real | twin | difference |",
+              "| --- | --- | --- | --- |"]
+    for k, v in s["image_stats_median"].items():
+        rd = v["relative_difference"]
+        lines.append(f"| {k} | {v['real']:.3g} | {v['twin']:.3g} | {'' if rd is None else f'{100 * rd:.1f} %'} |")
+    lines += ["", "![errors](errors.png)", "", "## Per frame", "",
+              "| frame | split | depth mm | tilt deg | markers real/twin | RMS px | disp. RMS px | real disp. px |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    f2 = lambda v: "" if v is None else f"{v:.2f}"  # noqa: E731
+    for r in s["per_frame"]:
+        lines.append(f"| {r['frame']} | {r['split']} | {r['depth_mm']:.2f} | ({r['tilt_x_deg']:.1f}, {r['tilt_y_deg']:.1f}) | "
+                     f"{r['real']['count']}/{r['twin']['count']} | {f2(r['position_rms_px'])} | "
+                     f"{f2(r['displacement_rms_px'])} | {f2(r['real_displacement_rms_px'])} |")
+    lines += ["", "Overlays: `overlay_<frame>.png` (real | twin; green o real markers, red + twin markers, yellow "
+              "line twin − real)."]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    body = "\n".join(f"<pre>{html.escape(line)}</pre>" if line.startswith("|") else
+                     f"<p>{html.escape(line)}</p>" for line in lines if line and not line.startswith("!["))
+    imgs = "\n".join(f'<figure><img src="overlay_{Path(r["frame"]).stem}.png" width="960"><figcaption>'
+                     f'{html.escape(r["frame"])} ({r["split"]})</figcaption></figure>' for r in s["per_frame"])
+    (out / "report.html").write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>validate "
+                                     f"{html.escape(s['design'])}</title></head><body>{body}<img src='errors.png'>"
+                                     f"{imgs}</body></html>\n")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("validate", help="compare the twin of a monocular TacTip with labelled real frames")
+    p.add_argument("frames", help="folder (or image) of real frames")
+    p.add_argument("--targets", required=True, help="targets CSV (pose_3 depth mm, pose_4/pose_5 tilt deg)")
+    p.add_argument("--design", required=True, help="design (a fitted TOML from fit-twin, or a built-in name)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--skip-unlabelled", action="store_true")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=cmd_validate)
+
+
+def cmd_validate(args) -> int:
+    validate(args.frames, args.targets, args.design, Path(args.out), progress=not args.no_progress,
+             skip_unlabelled=args.skip_unlabelled)
+    return 0

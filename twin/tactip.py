@@ -1,0 +1,328 @@
+"""A monocular TacTip in the twin: a tap of a flat rigid surface into a hemispherical gel-filled skin, and
+the single camera's frame of the pins' markers.
+
+Physics (a reduced skin model, stated): the skin is a triangulated elastic membrane through the pin bases
+(one node per pin, one free ring outside the last pin ring and the clamped rim of the hemisphere), with
+
+* stretching: springs on the mesh edges, energy ``sum (l - l0)^2`` (mm^2);
+* bending: ``bending_ratio * sum |L x - L x0|^2`` with the umbrella Laplacian ``L`` (the membrane resists
+  changes of its local curvature; ``bending_ratio`` is the bending/stretching weight, dimensionless on this
+  mesh, and the skin parameter ``stereotactip fit-twin`` identifies);
+* gel: the fill is incompressible, a stiff penalty on the enclosed volume (dome closed by the rim plane);
+* contact: the rigid surface is a plane, frictionless, a stiff penalty on penetration.
+
+The equilibrium is found by minimising the energy (L-BFGS, analytic gradient). A position-controlled tap
+into a rigid plane fixes the shape up to the stiffness *ratios*: the absolute modulus does not change the
+marker positions (it would scale the contact force, which the labelled frames do not record). Pins are
+rigid and normal to the skin: each marker sits ``skin thickness + pin height`` inside the outer surface
+along the deformed surface normal, which is what amplifies the skin's bending into marker motion.
+
+Rendering: each marker is a disc (the pin tip) facing along its pin; its outline is projected through the
+camera (OpenCV model, distortion included; the flat acrylic window's refraction is folded into the fitted
+intrinsics), filled at 4x supersampling, blurred by the edge width, shaded and noised. Appearance numbers
+come from the design's ``[twin]`` section.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import splu
+from scipy.spatial import Delaunay
+
+from pipeline.design import SensorDesign, marker_layout
+from pipeline.errors import UserError
+
+__all__ = ["TapPose", "DomeSkin", "tap_markers", "project_markers", "render_frame", "check_monocular"]
+
+VOLUME_WEIGHT = 1e5      # energy per (relative volume change)^2: the gel fill is incompressible
+CONTACT_WEIGHT = 1e3     # energy per mm^2 of penetration into the plane
+SUPERSAMPLE = 4
+STEP_TOL_MM = 1e-5       # Newton iterations stop when no node moves more than this
+DEBUG = False
+
+
+class TacTipError(UserError, ValueError):
+    """A design that is not a monocular dome, or a tap the model cannot solve."""
+
+
+def check_monocular(design: SensorDesign) -> None:
+    if not design.monocular or design.pattern.mapping != "arc":
+        raise TacTipError(f"design {design.name!r}: the tap model needs a monocular design with a [camera] block "
+                          f"and pattern.mapping = 'arc' (a TacTip dome), e.g. tactip331")
+
+
+@dataclass(frozen=True)
+class TapPose:
+    """A tap of a flat surface: ``depth_mm`` along the sensor axis past first touch, surface tilted by
+    ``tilt_x_deg`` about the robot's first tilt axis and ``tilt_y_deg`` about its second."""
+
+    depth_mm: float
+    tilt_x_deg: float = 0.0
+    tilt_y_deg: float = 0.0
+
+
+class DomeSkin:
+    """The membrane mesh of a design's dome (built once per design; :meth:`tap` per pose)."""
+
+    def __init__(self, design: SensorDesign):
+        check_monocular(design)
+        self.design = design
+        xy, _ = marker_layout(design.pattern)
+        self.n_markers = len(xy)
+        R = design.dome_radius_mm()
+        self.R = R
+        s = design.pattern.separation_mm
+        r_last = float(np.max(np.hypot(xy[:, 0], xy[:, 1])))
+        arc_rim = R * math.pi / 2 if design.pattern.dome_height_mm >= design.gel.radius_mm else \
+            R * math.asin(design.gel.radius_mm / R)
+        rings = []
+        r = r_last + s
+        n_ring = max(6, int(round(2 * math.pi * r_last / s)))
+        while r < arc_rim - 0.5 * s:
+            rings.append(r)
+            r += s
+        layout = [xy]
+        for r in rings:
+            t = 2 * np.pi * (np.arange(n_ring) + 0.5) / n_ring
+            layout.append(np.column_stack([np.cos(t), np.sin(t)]) * r)
+        t = 2 * np.pi * np.arange(n_ring) / n_ring
+        layout.append(np.column_stack([np.cos(t), np.sin(t)]) * arc_rim)
+        layout = np.concatenate(layout)
+        self.n_nodes = len(layout)
+        self.fixed = np.zeros(self.n_nodes, bool)
+        self.fixed[-n_ring:] = True
+        X0, _ = design.arc_surface(layout)
+        self.X0 = X0
+        tri = Delaunay(layout).simplices
+        # orient triangles so their normals point out of the dome
+        a, b, c = X0[tri[:, 0]], X0[tri[:, 1]], X0[tri[:, 2]]
+        nrm = np.cross(b - a, c - a)
+        centre = np.array([0.0, 0.0, -R])
+        flip = np.einsum("ij,ij->i", nrm, (a + b + c) / 3 - centre) < 0
+        tri[flip] = tri[flip][:, [0, 2, 1]]
+        self.tri = tri
+        edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+        self.edges = np.unique(edges, axis=0)
+        self.l0 = np.linalg.norm(X0[self.edges[:, 0]] - X0[self.edges[:, 1]], axis=1)
+        n = self.n_nodes
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        A = sparse.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
+        deg = np.asarray(A.sum(axis=1)).ravel()
+        self.L = (sparse.diags(1.0 / deg) @ A - sparse.eye(n)).tocsr()
+        self.LX0 = self.L @ X0
+        self.centre = np.array([0.0, 0.0, -R + R])  # rim plane centre (z of the rim)
+        self.centre[2] = X0[self.fixed][:, 2].mean()
+        self.V0 = self.volume(X0)
+        self.free = np.nonzero(~self.fixed)[0]
+        ne, nt = len(i), len(tri)
+        #: scatter matrices: edge forces and triangle-corner terms onto nodes (sparse: np.add.at is slow)
+        self.E = sparse.coo_matrix((np.r_[np.ones(ne), -np.ones(ne)], (np.r_[i, j], np.r_[np.arange(ne), np.arange(ne)])),
+                                   shape=(n, ne)).tocsr()
+        self.Tk = [sparse.coo_matrix((np.ones(nt), (tri[:, k], np.arange(nt))), shape=(n, nt)).tocsr()
+                   for k in range(3)]
+        self.LtL = (self.L.T @ self.L).tocsr()
+        self.LtLX0 = self.L.T @ self.LX0
+
+    # ----- geometry ---------------------------------------------------------------------
+    def volume(self, X: np.ndarray) -> float:
+        a, b, c = (X[self.tri[:, k]] - self.centre for k in range(3))
+        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+    def normals(self, X: np.ndarray) -> np.ndarray:
+        a, b, c = X[self.tri[:, 0]], X[self.tri[:, 1]], X[self.tri[:, 2]]
+        fn = np.cross(b - a, c - a)
+        vn = np.zeros_like(X)
+        for k in range(3):
+            np.add.at(vn, self.tri[:, k], fn)
+        return vn / np.linalg.norm(vn, axis=1, keepdims=True)
+
+    def markers(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Marker (pin tip) centres and pin axes (pointing into the dome) of a skin state, (N, 3) each."""
+        n = self.normals(X)[: self.n_markers]
+        return X[: self.n_markers] - self.design.marker_depth_mm * n, -n
+
+    # ----- the tap ----------------------------------------------------------------------
+    def plane(self, pose: TapPose, params: dict[str, float]) -> tuple[np.ndarray, float]:
+        """Unit normal ``m`` (from the skin into the object) and offset ``c``: the object is ``m . x > c``."""
+        psi = math.radians(params["tilt_frame_deg"])
+        ax = math.radians(pose.tilt_x_deg)
+        ay = math.radians(pose.tilt_y_deg) * (-1.0 if params["tilt_mirror"] >= 0.5 else 1.0)
+        Rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+        Ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+        Rz = np.array([[math.cos(psi), -math.sin(psi), 0], [math.sin(psi), math.cos(psi), 0], [0, 0, 1]])
+        m = Rz @ Rx @ Ry @ np.array([0.0, 0.0, 1.0])
+        depth = pose.depth_mm + params["depth_offset_mm"]
+        c = float(m @ np.array([0.0, 0.0, -self.R]) + self.R - depth * m[2])
+        return m, c
+
+    def tap(self, pose: TapPose, params: dict[str, float], *, x_init: np.ndarray | None = None,
+            max_iter: int = 3000) -> tuple[np.ndarray, dict]:
+        """Equilibrium skin nodes (n_nodes, 3) of a tap and a small report (energy, iterations, max
+        penetration mm, relative volume change)."""
+        m, c = self.plane(pose, params)
+        kb = float(params["bending_ratio"])
+        X = self.X0.copy()
+        free = self.free
+        i, j = self.edges[:, 0], self.edges[:, 1]
+        L, LX0, V0 = self.L, self.LX0, self.V0
+
+        def energy(q):
+            X[free] = q.reshape(-1, 3)
+            d = X[i] - X[j]
+            ln = np.linalg.norm(d, axis=1)
+            st = ln - self.l0
+            e = float(st @ st)
+            f = (2 * st / ln)[:, None] * d
+            g = self.E @ f
+            r = L @ X - LX0
+            e += kb * float(np.sum(r * r))
+            g += 2 * kb * (self.LtL @ X - self.LtLX0)
+            a, b, cc = (X[self.tri[:, k]] - self.centre for k in range(3))
+            bc = np.cross(b, cc)
+            V = float(np.einsum("ij,ij->i", a, bc).sum() / 6.0)
+            dv = (V - V0) / V0
+            e += VOLUME_WEIGHT * dv * dv
+            kv = 2 * VOLUME_WEIGHT * dv / V0 / 6.0
+            g += kv * (self.Tk[0] @ bc + self.Tk[1] @ np.cross(cc, a) + self.Tk[2] @ np.cross(a, b))
+            pen = np.maximum(X @ m - c, 0.0)
+            e += CONTACT_WEIGHT * float(pen @ pen)
+            g += (2 * CONTACT_WEIGHT * pen)[:, None] * m
+            return e, g[free].ravel()
+
+        q = (x_init if x_init is not None else self.X0)[free].ravel().copy()
+        nf = len(free)
+        pos = -np.ones(self.n_nodes, np.int64)
+        pos[free] = np.arange(nf)
+        Hb = sparse.kron(2 * kb * self.LtL[free][:, free], sparse.eye(3)).tocsr()
+        ei, ej = pos[i], pos[j]
+        e_ok = [(ei >= 0) & (ej >= 0), ei >= 0, ej >= 0]
+        e, g = energy(q)
+        n_it, converged = 0, False
+        for n_it in range(1, max_iter + 1):
+            # projected Newton step: Hessian of springs (clamped PSD), bending, active contact, volume
+            # (Gauss-Newton rank one, by Sherman-Morrison)
+            d = X[i] - X[j]
+            ln = np.linalg.norm(d, axis=1)
+            dh = d / ln[:, None]
+            B = 2 * ((self.l0 / ln)[:, None, None] * dh[:, :, None] * dh[:, None, :]
+                     + np.maximum(1 - self.l0 / ln, 0.0)[:, None, None] * np.eye(3)[None])
+            rows, cols, vals = [], [], []
+            for (a_, b_, sgn, ok) in ((ei, ei, 1.0, e_ok[1]), (ej, ej, 1.0, e_ok[2]),
+                                      (ei, ej, -1.0, e_ok[0]), (ej, ei, -1.0, e_ok[0])):
+                r3 = (3 * a_[ok])[:, None, None] + np.arange(3)[None, :, None]
+                c3 = (3 * b_[ok])[:, None, None] + np.arange(3)[None, None, :]
+                rows.append(np.broadcast_to(r3, (ok.sum(), 3, 3)).ravel())
+                cols.append(np.broadcast_to(c3, (ok.sum(), 3, 3)).ravel())
+                vals.append((sgn * B[ok]).ravel())
+            active = free[(X[free] @ m - c) > 0.0]
+            if len(active):
+                r3 = (3 * pos[active])[:, None, None] + np.arange(3)[None, :, None]
+                c3 = (3 * pos[active])[:, None, None] + np.arange(3)[None, None, :]
+                mm = 2 * CONTACT_WEIGHT * np.outer(m, m)
+                rows.append(np.broadcast_to(r3, (len(active), 3, 3)).ravel())
+                cols.append(np.broadcast_to(c3, (len(active), 3, 3)).ravel())
+                vals.append(np.broadcast_to(mm, (len(active), 3, 3)).ravel())
+            H = sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                  shape=(3 * nf, 3 * nf)).tocsc() + Hb + 1e-8 * sparse.eye(3 * nf)
+            a, b, cc = (X[self.tri[:, k]] - self.centre for k in range(3))
+            u = (self.Tk[0] @ np.cross(b, cc) + self.Tk[1] @ np.cross(cc, a) + self.Tk[2] @ np.cross(a, b)) / 6.0
+            u = u[free].ravel() / V0
+            alpha = 2 * VOLUME_WEIGHT
+            lu = splu(H.tocsc())
+            Hg, Hu = lu.solve(-g), lu.solve(u)
+            step = Hg - Hu * (alpha * (u @ Hg) / (1 + alpha * (u @ Hu)))
+            if g @ step >= 0:
+                step = -g
+            t = 1.0
+            while True:
+                e_new, g_new = energy(q + t * step)
+                if e_new <= e + 1e-4 * t * (g @ step) or t < 1e-6:
+                    break
+                t *= 0.5
+            q = q + t * step
+            de = e - e_new
+            e, g = e_new, g_new
+            if DEBUG:
+                print(n_it, e, de, t, np.max(np.abs(t * step)), np.max(np.abs(g)), len(active))
+            if np.max(np.abs(t * step)) < STEP_TOL_MM or np.max(np.abs(g)) < 1e-7:
+                converged = True
+                break
+        res = type("R", (), {"x": q, "fun": e, "nit": n_it, "success": converged})()
+        X[free] = res.x.reshape(-1, 3)
+        pen = float(np.max(X @ m - c))
+        info = {"energy": float(res.fun), "iterations": int(res.nit), "converged": bool(res.success),
+                "penetration_max_mm": max(pen, 0.0), "volume_change": (self.volume(X) - V0) / V0}
+        return X.copy(), info
+
+
+def tap_markers(skin: DomeSkin, pose: TapPose, params: dict[str, float] | None = None):
+    """Marker centres, pin axes (sensor frame, mm) and the solve report of one tap."""
+    params = params or skin.design.twin_params()
+    X, info = skin.tap(pose, params)
+    p, axis = skin.markers(X)
+    return p, axis, info
+
+
+# ----- camera -------------------------------------------------------------------------------
+
+def camera_extrinsics(design: SensorDesign) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV rvec, tvec (camera_from_sensor) of a monocular design's camera."""
+    T = np.linalg.inv(design.camera_pose())
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    return rvec.ravel(), T[:3, 3].copy()
+
+
+def project_markers(design: SensorDesign, points_mm: np.ndarray) -> np.ndarray:
+    """Image positions (N, 2) px of sensor-frame points through the design's camera."""
+    rvec, tvec = camera_extrinsics(design)
+    uv, _ = cv2.projectPoints(np.asarray(points_mm, np.float64).reshape(-1, 1, 3), rvec, tvec,
+                              design.camera.K, design.camera.D)
+    return uv.reshape(-1, 2)
+
+
+def render_frame(design: SensorDesign, centres: np.ndarray, axes: np.ndarray, *,
+                 seed: int = 0, n_outline: int = 16) -> np.ndarray:
+    """The camera's 8-bit grey frame of the markers (discs of the design's marker diameter x
+    ``marker_scale`` at ``centres``, facing along ``axes``)."""
+    cam = design.camera
+    tp = design.twin_params()
+    w, h = cam.width_px, cam.height_px
+    rad = 0.5 * design.markers.diameter_mm * tp["marker_scale"]
+    # outline of each disc: two unit vectors spanning its plane
+    a = np.asarray(axes, np.float64)
+    ref = np.where(np.abs(a[:, [2]]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    e1 = np.cross(a, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(a, e1)
+    t = 2 * np.pi * np.arange(n_outline) / n_outline
+    ring = (centres[:, None, :] + rad * (np.cos(t)[None, :, None] * e1[:, None, :]
+                                         + np.sin(t)[None, :, None] * e2[:, None, :]))
+    uv = project_markers(design, ring.reshape(-1, 3)).reshape(len(centres), n_outline, 2)
+    uvc = project_markers(design, centres)
+    # camera-frame depth: draw far markers first
+    T = np.linalg.inv(design.camera_pose())
+    depth = (centres @ T[:3, :3].T + T[:3, 3])[:, 2]
+    rho2 = ((uvc[:, 0] - cam.cx_px) ** 2 + (uvc[:, 1] - cam.cy_px) ** 2) / (0.5 * h) ** 2
+    grey = np.clip(tp["marker_grey"] * (1.0 + tp["marker_shading"] * rho2), 0, 255)
+    S = SUPERSAMPLE
+    canvas = np.full((h * S, w * S), 0, np.uint8)
+    shift = 4
+    for k in np.argsort(-depth):
+        if depth[k] <= 0:
+            continue
+        poly = np.rint((uv[k] + 0.5) * S * (1 << shift) - 0.5 * (1 << shift)).astype(np.int32)
+        cv2.fillPoly(canvas, [poly], int(round(grey[k])), lineType=cv2.LINE_8, shift=shift)
+    img = cv2.resize(canvas.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    mask = cv2.resize((canvas > 0).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    if tp["edge_px"] > 0.05:
+        img = cv2.GaussianBlur(img, (0, 0), tp["edge_px"])
+        mask = cv2.GaussianBlur(mask, (0, 0), tp["edge_px"])
+    img = img + tp["background_grey"] * (1.0 - mask)
+    if tp["noise_grey"] > 0:
+        img = img + np.random.default_rng(seed).normal(0.0, tp["noise_grey"], img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
