@@ -115,10 +115,17 @@ class FitContext:
                       json.dumps(to_dict(self.design), sort_keys=True, default=str))
 
     # ----- twin taps ----------------------------------------------------------------------
+    def _tap_key(self, i: int, params: dict) -> tuple:
+        return (i, tuple(sorted((a, round(b, 9)) for a, b in params.items()
+                                if a in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror"))))
+
+    def remember_tap(self, i: int, twin: dict, markers: tuple[np.ndarray, np.ndarray]) -> None:
+        """Keep a tap computed elsewhere (a cell of the executor) as :meth:`tap` would have."""
+        self._taps[self._tap_key(i, {**self.design.twin_params(), **twin})] = markers
+
     def tap(self, i: int, twin: dict) -> tuple[np.ndarray, np.ndarray]:
         params = {**self.design.twin_params(), **twin}
-        k = (i, tuple(sorted((a, round(b, 9)) for a, b in params.items()
-                             if a in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror"))))
+        k = self._tap_key(i, params)
         if k not in self._taps:
             X, info = self.skin.tap(self.frames[i].pose, params)
             if not info["converged"]:

@@ -25,8 +25,10 @@ import numpy as np
 from pipeline.design import load_design
 from pipeline.detection import detect_markers
 from pipeline.tactip_id import frame_stats, identify_by_reference
+from benchmarks.executor import make_engine, run_cells
 from benchmarks.tactip_fit import CAM_KEYS, FitContext, identify_chain
 from twin.tactip import project_markers, render_frame
+from twin.tapdata import TapDataError
 
 __all__ = ["validate", "register", "cmd_validate", "ridge_features"]
 
@@ -90,10 +92,28 @@ def _overlay(real: np.ndarray, twin: np.ndarray, rxy: np.ndarray, txy: np.ndarra
     return out
 
 
-def validate(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
-             skip_unlabelled: bool = False) -> dict:
-    from tqdm import tqdm
+_SKINS: dict = {}
 
+
+def twin_frame_cell(design, pose, params: dict, seed: int) -> tuple:
+    """One frame of the twin (a cell): tap ``pose``, render, detect. Returns pin tips, pin axes, image,
+    detected blobs and the pin tips' exact projections."""
+    from twin.tactip import DomeSkin
+
+    skin = _SKINS.get(design.name)
+    if skin is None or skin.design != design:
+        skin = _SKINS[design.name] = DomeSkin(design)
+    X, info = skin.tap(pose, params)
+    if not info["converged"]:
+        raise TapDataError(f"the tap did not converge (iterations {info['iterations']}, "
+                           f"penetration {info['penetration_max_mm']:.3f} mm)")
+    p, ax = skin.markers(X)
+    img = render_frame(design, p, ax, seed=seed)
+    return p, ax, img, detect_markers(img), project_markers(design, p)
+
+
+def validate(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
+             skip_unlabelled: bool = False, engine=None) -> dict:
     t0 = time.time()
     design = load_design(design_name)
     ctx = FitContext(frames, targets, design, progress=progress, skip_unlabelled=skip_unlabelled, log=log)
@@ -109,13 +129,18 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
     ref_real[idx >= 0] = ctx.blobs[ctx.ref].xy_px[idx[idx >= 0]]
     ctx.set_reference(ref_real)
     # twin renders, detections; twin reference ids from its truth
+    # each frame's tap + render + detection is an independent cell of the project's one executor (local
+    # processes by default, a Dask cluster with --cluster)
+    params = {**design.twin_params(), **tw}
+    jobs = [(design, ctx.frames[i].pose, params, 1000 + i) for i in range(n)]
+    outcomes = run_cells(twin_frame_cell, jobs, engine=engine, desc="validate", progress=progress)
+    failed = [(ctx.frames[o.index].path.name, o.error.strip().splitlines()[-1]) for o in outcomes if not o.ok]
+    if failed:
+        raise TapDataError("the twin could not tap " + "; ".join(f"{name} ({err})" for name, err in failed))
     twin_imgs, twin_blobs, truth_uv = [None] * n, [None] * n, [None] * n
-    bar = tqdm(range(n), desc="validate", unit="frame", disable=not progress)
-    for i in bar:
-        p, ax = ctx.tap(i, tw)
-        twin_imgs[i] = render_frame(design, p, ax, seed=1000 + i)
-        twin_blobs[i] = detect_markers(twin_imgs[i])
-        truth_uv[i] = project_markers(design, p)
+    for o in outcomes:
+        p, ax, twin_imgs[o.index], twin_blobs[o.index], truth_uv[o.index] = o.result
+        ctx.remember_tap(o.index, tw, (p, ax))
     idx = identify_by_reference(twin_blobs[ctx.ref].xy_px, truth_uv[ctx.ref])
     ref_twin = np.full_like(uv_ref, np.nan)
     ref_twin[idx >= 0] = twin_blobs[ctx.ref].xy_px[idx[idx >= 0]]
@@ -280,10 +305,17 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--skip-unlabelled", action="store_true")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="run the twin's frames on an existing Dask cluster (the 'cluster' extra)")
     p.set_defaults(func=cmd_validate)
 
 
 def cmd_validate(args) -> int:
-    validate(args.frames, args.targets, args.design, Path(args.out), progress=not args.no_progress,
-             skip_unlabelled=args.skip_unlabelled)
+    engine = make_engine(args.cluster, args.workers)
+    try:
+        validate(args.frames, args.targets, args.design, Path(args.out), progress=not args.no_progress,
+                 skip_unlabelled=args.skip_unlabelled, engine=engine)
+    finally:
+        engine.close()
     return 0
