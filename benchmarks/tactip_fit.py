@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
+from pipeline.atomic import atomic_write_json, atomic_write_text
 from pipeline.design import SensorDesign, design_from_dict, load_design, to_dict, to_toml
 from pipeline.detection import detect_markers
 from pipeline.tactip_id import frame_stats, identify_by_reference
@@ -410,9 +411,7 @@ def _cached(cache: Path, name: str, key: str, fn):
             return data["value"], True
     value = fn()
     cache.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"key": key, "value": value}, indent=1))
-    tmp.replace(path)
+    atomic_write_json(path, {"key": key, "value": value}, indent=1)
     return value, False
 
 
@@ -489,7 +488,7 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
               f"({len(ctx.train)} train, {len(ctx.held)} held out).\n"
               f"# Pin-tip RMS (projected twin vs identified real markers): train {train_rms:.2f} px, "
               f"held out {held_rms:.2f} px.\n")
-    out.write_text(header + to_toml(fitted))
+    atomic_write_text(out, header + to_toml(fitted))
     phys = s23["report"]
     summary = {
         "design": design.name, "out": str(out), "frames": len(ctx.frames),
@@ -504,7 +503,7 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
         "separation_mm": s0["separation_mm"],
         "fitted_parameters": 1 + len(CAM_KEYS) + 4 + 5, "seconds": time.time() - t0,
     }
-    (Path(str(out) + ".fit.json")).write_text(json.dumps(summary, indent=1))
+    atomic_write_json(Path(str(out) + ".fit.json"), summary, indent=1)
     c = s4["report"]
     log("camera (value ± 1 sd):")
     for k in CAM_KEYS:

@@ -15,13 +15,13 @@ Writes an overlay PNG per frame, ``summary.json``, ``report.md``, ``report.html`
 from __future__ import annotations
 
 import html
-import json
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from pipeline.atomic import atomic_write_json, atomic_write_text, imwrite_atomic, savefig_atomic
 from pipeline.design import load_design
 from pipeline.detection import detect_markers
 from pipeline.tactip_id import frame_stats, identify_by_reference
@@ -182,7 +182,7 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
         ov = _overlay(ctx.greys[i], twin_imgs[i], real_xy[i], twin_xy[i],
                       f"{f.path.name} [{row['split']}] d={f.pose.depth_mm:.2f} mm tilt=({f.pose.tilt_x_deg:.1f}, "
                       f"{f.pose.tilt_y_deg:.1f}) deg  RMS {row['position_rms_px'] or float('nan'):.2f} px")
-        cv2.imwrite(str(out / f"overlay_{f.path.stem}.png"), ov)
+        imwrite_atomic(out / f"overlay_{f.path.stem}.png", ov)
     # held-out figures: RMS over all held-out marker observations compared by each method
     held = {k: _rms(np.concatenate(v)) for k, v in held_err.items()}
     # the same markers for all methods: those the twin identified too
@@ -213,7 +213,7 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
                "held_out_rms_px": held, "held_out_rms_px_common_markers": held_common,
                "fitted_position_parameters": n_params, "image_stats_median": stats, "goals": goals,
                "per_frame": per_frame, "seconds": time.time() - t0}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    atomic_write_json(out / "summary.json", summary, indent=1)
     _plot(out, held_err, per_frame)
     _report(out, summary)
     log(f"validate: {n} frames ({len(ctx.held)} held out), reference {summary['reference']}")
@@ -255,7 +255,7 @@ def _plot(out: Path, held_err, per_frame) -> None:
     ax[1].legend()
     del lim
     fig.tight_layout()
-    fig.savefig(out / "errors.png", dpi=110)
+    savefig_atomic(fig, out / "errors.png", dpi=110)
     plt.close(fig)
 
 
@@ -287,12 +287,12 @@ def _report(out: Path, s: dict) -> None:
                      f"{f2(r['displacement_rms_px'])} | {f2(r['real_displacement_rms_px'])} |")
     lines += ["", "Overlays: `overlay_<frame>.png` (real | twin; green o real markers, red + twin markers, yellow "
               "line twin − real)."]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+    atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
     body = "\n".join(f"<pre>{html.escape(line)}</pre>" if line.startswith("|") else
                      f"<p>{html.escape(line)}</p>" for line in lines if line and not line.startswith("!["))
     imgs = "\n".join(f'<figure><img src="overlay_{Path(r["frame"]).stem}.png" width="960"><figcaption>'
                      f'{html.escape(r["frame"])} ({r["split"]})</figcaption></figure>' for r in s["per_frame"])
-    (out / "report.html").write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>validate "
+    atomic_write_text(out / "report.html", f"<!doctype html><html><head><meta charset='utf-8'><title>validate "
                                      f"{html.escape(s['design'])}</title></head><body>{body}<img src='errors.png'>"
                                      f"{imgs}</body></html>\n")
 

@@ -33,7 +33,10 @@ def job(i, folder):
     return i
 
 if __name__ == "__main__":
+    import faulthandler, signal
+    faulthandler.register(signal.SIGUSR1, all_threads=True)   # the test asks for every thread's stack on a hang
     folder = sys.argv[1]
+    Path(folder, "sigint_at_start").write_text(repr(signal.getsignal(signal.SIGINT)))
     def done(i, result, error):
         Path(folder, f"done_{i}").write_text(repr(result))
     try:
@@ -106,9 +109,12 @@ def test_a_signal_stops_the_run_in_seconds_and_leaves_no_worker(sig, tmp_path, c
     try:
         rc = proc.wait(timeout=60)
     except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)     # faulthandler: every thread's stack into stderr.txt
+        time.sleep(1.0)
         proc.kill()           # reap it here, or its Popen warns in whichever later test collects it
         proc.wait()
-        pytest.fail(f"the driver did not stop within 60 s of {sig.name}: {_stderr(tmp_path)}")
+        state = {f.name: f.read_text() for f in tmp_path.iterdir() if f.name in ("interrupted", "sigint_at_start")}
+        pytest.fail(f"the driver did not stop within 60 s of {sig.name} ({state}): {_stderr(tmp_path)}")
     elapsed = time.monotonic() - t0
     assert rc == 130 and (tmp_path / "interrupted").exists(), _stderr(tmp_path)
     assert elapsed < STOP_WITHIN_S, f"took {elapsed:.1f} s to stop"
