@@ -223,7 +223,7 @@ class Experiment:
     description: str
 
     def missing_requirements(self) -> list[str]:
-        """Modules in ``requires`` that cannot be imported (upstream work not landed yet)."""
+        """Modules in ``requires`` that cannot be imported in this installation (the experiment is skipped)."""
         missing = []
         for mod in self.requires:
             try:
