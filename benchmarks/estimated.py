@@ -3,10 +3,10 @@
 The twin knows its cameras, refractive index and stack thicknesses exactly; a user does not:
 
 * the stereo calibration is estimated from chessboard pairs (``stereotactip calibrate``:
-  :func:`pipeline.calibration.calibrate_stereo` on the twin's skin-less chessboard renders,
+  :func:`pipeline.geometry.calibration.calibrate_stereo` on the twin's skin-less chessboard renders,
   :func:`twin.render.render_chessboard_pairs`), with the left camera placed at the design's nominal pose;
 * the gel index is fitted from a skin-less marker-board press (``stereotactip calibrate-refraction``:
-  :func:`pipeline.refraction.fit_index_from_press` on frames the twin renders through its true stack);
+  :func:`pipeline.geometry.refraction.fit_index_from_press` on frames the twin renders through its true stack);
 * the built stack differs from its drawing within manufacturing tolerances: gel thickness
   ±:data:`GEL_TOL_MM`, acrylic thickness ±:data:`ACRYLIC_TOL_MM`, gel index ±:data:`INDEX_TOL`
   (uniform draws from a seeded stream per design).
@@ -119,8 +119,8 @@ def estimated_calibration(design: SensorDesign, seed: int, *, cache_dir: Path | 
     Cached as ``<cache_dir>/calib-<design>-<digest>-seed<seed>-pairs<n>.yaml`` (+ ``.json`` with the report)."""
     import json
 
-    from pipeline.atomic import atomic_write_json
-    from pipeline.calibration import calibrate_stereo
+    from pipeline.io.atomic import atomic_write_json
+    from pipeline.geometry.calibration import calibrate_stereo
     from twin.render import render_chessboard_pairs, true_calibration
 
     stem = f"calib-{design.name}-{design_digest(design)}-seed{int(seed)}-pairs{int(n_pairs)}"
@@ -155,8 +155,8 @@ def fitted_index(twin_design: SensorDesign, design: SensorDesign, calib: StereoC
     import gc
     import json
 
-    from pipeline.atomic import atomic_write_json
-    from pipeline.refraction import fit_index_from_press
+    from pipeline.io.atomic import atomic_write_json
+    from pipeline.geometry.refraction import fit_index_from_press
     from twin.render import StereoRenderer
 
     path = _cache_file(cache_dir, f"index-{key}.json")

@@ -1,6 +1,6 @@
 """Latency benchmark of the pipeline: raw stereo frame -> reconstructed skin, per stage, on one core.
 
-Frames are analytic (:mod:`pipeline.synthetic`): a Gaussian press whose depth sweeps 0-3 mm over
+Frames are analytic (:mod:`pipeline.io.synthetic`): a Gaussian press whose depth sweeps 0-3 mm over
 the run, so every frame differs. The paper reports 283 ms per frame (MATLAB/Python, Ryzen 7 5800X);
 the goal here is <= 5 ms median.
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.design import load_design
 from pipeline.runner import Reconstructor
-from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
+from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
 __all__ = ["run_latency", "reference_workload_ms", "PAPER_LATENCY_MS", "GOAL_MEDIAN_MS"]
 
@@ -143,7 +143,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        from pipeline.atomic import atomic_write_json
+        from pipeline.io.atomic import atomic_write_json
 
         atomic_write_json(out / "latency.json", result, indent=1)
     return result

@@ -182,7 +182,7 @@ def write_report(out_dir: Path, screenshot: bool = True, against: Path | None = 
     if not records and not has_sweeps:
         raise ResultsError(f"results directory {out_dir}: no experiment JSON records or sweep tables found")
     path = out_dir / "report.md"
-    from pipeline.atomic import atomic_write_text
+    from pipeline.io.atomic import atomic_write_text
 
     from benchmarks.report_html import render_html
 
@@ -260,7 +260,7 @@ def _bounds(lo: float | None, hi: float | None) -> str:
 def update_readme(readme: Path, records_dir: Path) -> Path:
     """Replace the block between :data:`README_BEGIN` and :data:`README_END` in ``readme`` with
     :func:`gate_figures_markdown` of the records in ``records_dir`` (atomically); everything else is kept."""
-    from pipeline.atomic import atomic_write_text
+    from pipeline.io.atomic import atomic_write_text
 
     readme = Path(readme)
     try:

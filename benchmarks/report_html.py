@@ -509,7 +509,7 @@ def write_screenshot(html_path: Path | str, png_path: Path | str | None = None,
     png_path = Path(png_path) if png_path is not None else html_path.with_suffix(".png")
     with Chromium(exe) as browser:
         view = browser.load(html_path)
-    from pipeline.atomic import atomic_write_bytes
+    from pipeline.io.atomic import atomic_write_bytes
 
     atomic_write_bytes(png_path, view.png)
     return png_path

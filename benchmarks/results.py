@@ -27,7 +27,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from benchmarks.registry import Context, Experiment, Result
-from pipeline.atomic import atomic_write_json, savefig_atomic
+from pipeline.io.atomic import atomic_write_json, savefig_atomic
 from pipeline.errors import UserError
 
 if sys.version_info >= (3, 11):

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from pipeline.atomic import atomic_write_json
+from pipeline.io.atomic import atomic_write_json
 from pipeline.errors import UserError
 
 __all__ = ["Cell", "make_cells", "run_sweep", "cell_key", "BASE_DESIGN", "SweepError"]

@@ -3,7 +3,7 @@
 A researcher opens ``sweep_<experiment>.parquet`` with ``pandas.read_parquet`` (or the CSV with any
 spreadsheet) without this project's code: the rows are plain scalars (numbers, strings, booleans,
 empty for missing), lists are joined with ``"; "`` and nested mappings flattened to ``parent.child``
-columns. Both files are written atomically (:mod:`pipeline.atomic`). Parquet needs ``pyarrow``; without
+columns. Both files are written atomically (:mod:`pipeline.io.atomic`). Parquet needs ``pyarrow``; without
 it only the CSV is written and the caller is told so.
 """
 
@@ -15,7 +15,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from pipeline.atomic import atomic_write_bytes, atomic_write_text
+from pipeline.io.atomic import atomic_write_bytes, atomic_write_text
 
 __all__ = ["flatten", "write_table"]
 

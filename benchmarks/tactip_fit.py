@@ -7,7 +7,7 @@ Stages (each cached in ``OUT.cache/`` keyed by its inputs, so an interrupted fit
    pattern's 60° symmetry (median nearest-marker distance), then focal length, principal point, radial
    distortion (k1, k2, k3), lateral offset and axial position by robust least squares (soft-L1) on mutual
    nearest-neighbour matches, re-matched 6 times. The matches give the reference frame's marker ids; every
-   frame is identified from that reference (:func:`pipeline.tactip_id.identify_sequence`).
+   frame is identified from that reference (:func:`pipeline.vision.tactip_id.identify_sequence`).
 2. **tilt frame** — the robot's tilt axes relative to the pattern (angle about the sensor axis and the
    handedness of the second tilt): 12 angles x 2 handedness on the 4 most tilted training taps, refined
    by a bounded 1-D search.
@@ -16,7 +16,7 @@ Stages (each cached in ``OUT.cache/`` keyed by its inputs, so an interrupted fit
 4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
    printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
 5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
-   the real frames' image statistics (the same detector and :func:`pipeline.tactip_id.frame_stats` on twin
+   the real frames' image statistics (the same detector and :func:`pipeline.vision.tactip_id.frame_stats` on twin
    renders, three fixed-point passes).
 
 The skin, tilt-frame and depth-offset searches score the projected twin pin tips against the identified
@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
-from pipeline.atomic import atomic_write_json, atomic_write_text
+from pipeline.io.atomic import atomic_write_json, atomic_write_text
 from pipeline.design import SensorDesign, design_from_dict, load_design, to_dict, to_toml
-from pipeline.detection import detect_markers
-from pipeline.tactip_id import frame_stats, identify_by_reference, identify_sequence
+from pipeline.vision.detection import detect_markers
+from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identify_sequence
 from twin.tactip import DomeSkin, TapPose, check_monocular, project_markers, render_frame
 from twin.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
@@ -137,7 +137,7 @@ class FitContext:
 
     # ----- identification -----------------------------------------------------------------
     def set_reference(self, ref_xy: np.ndarray) -> None:
-        """Identify every frame (:func:`pipeline.tactip_id.identify_sequence`): frames in order of pose
+        """Identify every frame (:func:`pipeline.vision.tactip_id.identify_sequence`): frames in order of pose
         distance from the reference, each against the already identified frame nearest in pose, so a
         chain of small steps carries the ids to the deepest, most tilted taps; an id only where the
         match is unambiguous."""
@@ -164,7 +164,7 @@ def _pose_vec(p: TapPose) -> np.ndarray:
 
 def identify_chain(blobs, poses, ref: int, ref_xy: np.ndarray) -> list[np.ndarray]:
     """Identified positions (M, 2, NaN where unidentified) of every frame, see FitContext.set_reference:
-    :func:`pipeline.tactip_id.identify_sequence` over the poses (depth mm, tilts deg / 5)."""
+    :func:`pipeline.vision.tactip_id.identify_sequence` over the poses (depth mm, tilts deg / 5)."""
     P = np.array([_pose_vec(p) for p in poses])
     return identify_sequence(blobs, P, ref, ref_xy).xy
 

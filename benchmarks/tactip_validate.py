@@ -1,8 +1,8 @@
 """``stereotactip validate``: the twin against labelled real frames of a monocular TacTip.
 
 For each real frame the twin taps the labelled pose and renders it; the real and the twin frame go
-through the same detector (:func:`pipeline.detection.detect_markers`) and the same identification
-(:func:`pipeline.tactip_id.identify_sequence`, each from its own reference: the shallowest training
+through the same detector (:func:`pipeline.vision.detection.detect_markers`) and the same identification
+(:func:`pipeline.vision.tactip_id.identify_sequence`, each from its own reference: the shallowest training
 tap, real or twin; the real reference takes its ids from the twin's projected pin tips, the twin's from its
 truth). Per frame: marker count, apparent radius, contrast, background, spacing and noise of both; per
 marker the position error twin − real (px) and the displacement error (twin − twin reference) − (real −
@@ -21,10 +21,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.atomic import atomic_write_json, atomic_write_text, imwrite_atomic, savefig_atomic
+from pipeline.io.atomic import atomic_write_json, atomic_write_text, imwrite_atomic, savefig_atomic
 from pipeline.design import load_design
-from pipeline.detection import detect_markers
-from pipeline.tactip_id import frame_stats, identify_by_reference
+from pipeline.vision.detection import detect_markers
+from pipeline.vision.tactip_id import frame_stats, identify_by_reference
 from benchmarks.executor import make_engine, run_cells
 from benchmarks.tactip_fit import CAM_KEYS, FitContext, identify_chain
 from twin.tactip import project_markers, render_frame

@@ -3,8 +3,8 @@
 For each region (``twin.terrain.REGIONS``): zigzag tap centres with 15 mm steps over the region's box;
 each tap lowers the downward-facing sensor from global z = 8 mm to the tap plane (the paper: z = 0,
 sea level) and records the skin as points in the SENSOR frame; the points go to the global frame by
-the tap pose (``pipeline.merge.tap_points_to_global``), are merged with the paper's overlap rule and
-mollified (``pipeline.merge.merge_taps``), gridded, and compared with the DEM-derived truth.
+the tap pose (``pipeline.geometry.merge.tap_points_to_global``), are merged with the paper's overlap rule and
+mollified (``pipeline.geometry.merge.merge_taps``), gridded, and compared with the DEM-derived truth.
 
 Tap back ends (``sensor=``):
 
@@ -40,8 +40,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io import write_ply
-from pipeline.merge import (MOLLIFIER_EPS_MM, OVERLAP_THRESHOLD_MM, grid_points, merge_taps,
+from pipeline.io.files import write_ply
+from pipeline.geometry.merge import (MOLLIFIER_EPS_MM, OVERLAP_THRESHOLD_MM, grid_points, merge_taps,
                             tap_points_to_global)
 from pipeline.types import HeightMap
 
@@ -209,7 +209,7 @@ def run_tap(job: TapJob) -> str:
         pts, origin, validity = _twin_tap(job)
     else:
         raise TerrainScanError(f"unknown sensor back end {job.sensor!r} (ideal, twin)")
-    from pipeline.atomic import atomic_open
+    from pipeline.io.atomic import atomic_open
 
     with atomic_open(job.path, "wb") as fh:
         np.savez_compressed(fh, points_sensor_mm=pts, origin_mm=origin, region=job.region,
@@ -342,7 +342,7 @@ def _panel(path: Path, title: str, truth: HeightMap, recon: HeightMap, centres: 
             ax.plot(centres[:, 0], centres[:, 1], "k.-", lw=0.6, ms=3)
     axes[0].set_ylabel("y (mm)")
     fig.suptitle(title)
-    from pipeline.atomic import savefig_atomic
+    from pipeline.io.atomic import savefig_atomic
 
     try:
         savefig_atomic(fig, path, dpi=110)
@@ -390,7 +390,7 @@ def _world_panel(path: Path, tmap, results: dict[str, dict]) -> None:
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
     fig.colorbar(im, ax=axes, shrink=0.5, label="z (mm)")
-    from pipeline.atomic import savefig_atomic
+    from pipeline.io.atomic import savefig_atomic
 
     try:
         savefig_atomic(fig, path, dpi=100)
@@ -512,7 +512,7 @@ def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", senso
         "wall_time_s": time.perf_counter() - t_start,
         "regions": {k: v["metrics"] for k, v in results.items()},
     }
-    from pipeline.atomic import atomic_write_json
+    from pipeline.io.atomic import atomic_write_json
 
     atomic_write_json(out / "terrain.json", record, indent=2, default=float)
     return record

@@ -146,7 +146,7 @@ def run_twin_bench(out_dir, quick: bool = False) -> dict:
     result["reference_ms_all"] = [float(v) for v in ref_ms]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    from pipeline.atomic import atomic_write_json
+    from pipeline.io.atomic import atomic_write_json
 
     atomic_write_json(out / "twin.json", result)
     return result

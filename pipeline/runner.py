@@ -17,10 +17,10 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
-from pipeline.refraction import correct_exact, correct_linear
-from pipeline.surface import MIN_MARKERS, height_map, skin_surface
+from pipeline.geometry.refraction import correct_exact, correct_linear
+from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
 from pipeline.threads import one_thread
-from pipeline.triangulation import matched_rays, triangulate
+from pipeline.geometry.triangulation import matched_rays, triangulate
 from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
 
@@ -51,7 +51,7 @@ class FrameResult:
     ``height_map`` (None unless requested); ``timings_ms`` per stage and ``total``; ``unmatched_ids``
     design ids not reconstructed in this frame; ``n_expected`` markers of the design;
     ``unmatched_reasons`` {id: why it was not reconstructed} (per view: the certainty rule's reason,
-    see :mod:`pipeline.identity`; or the stereo check's). 3-D in the sensor frame, mm.
+    see :mod:`pipeline.vision.identity`; or the stereo check's). 3-D in the sensor frame, mm.
     """
 
     index: int
@@ -151,7 +151,7 @@ class Reconstructor:
             raise RunnerError(f"tracker {tracker!r}: choose one of {TRACKERS}")
         if n_gel is not None and not 1.0 <= n_gel <= 3.0:
             raise RunnerError(f"n_gel {n_gel}: refractive index outside [1, 3]")
-        from pipeline import detection, dtrc
+        from pipeline.vision import detection, dtrc
 
         calib.check_fits_frame()
         self.design, self.calib = design, calib
@@ -216,7 +216,7 @@ class Reconstructor:
         left = self._detect(frame.left, params=self._detection_params)
         right = self._detect(frame.right, params=self._detection_params)
         if self._narrow and min(len(left), len(right)) >= self.design.marker_count // 2:
-            from pipeline.detection import marker_radius_px
+            from pipeline.vision.detection import marker_radius_px
 
             both = Blobs(np.vstack([left.xy_px, right.xy_px]), np.concatenate([left.sigma_px, right.sigma_px]),
                          np.concatenate([left.response, right.response]))
@@ -318,9 +318,9 @@ def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out
     """
     from tqdm import tqdm
 
-    from pipeline.atomic import atomic_write_json
-    from pipeline.io import heightmap_mesh, write_heightmap_npz, write_markers_csv, write_ply, write_preview_png
-    from pipeline.io import write_stl
+    from pipeline.io.atomic import atomic_write_json
+    from pipeline.io.files import heightmap_mesh, write_heightmap_npz, write_markers_csv, write_ply, write_preview_png
+    from pipeline.io.files import write_stl
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -412,9 +412,9 @@ def compile_kernels() -> float:
     compiles (~30-35 s on the 2-core reference machine), later ones load the cached machine code in
     well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
     from pipeline.design import load_design
-    from pipeline.detection import detect_markers
-    from pipeline.dtrc import code_rings
-    from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
+    from pipeline.vision.detection import detect_markers
+    from pipeline.vision.dtrc import code_rings
+    from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
     t0 = time.perf_counter()
     design = load_design("hexagon127")

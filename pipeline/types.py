@@ -233,7 +233,7 @@ class HeightMap:
 
     def save_npz(self, path: str | Path) -> None:
         """Write ``x_mm``, ``y_mm``, ``z_mm`` to a compressed ``.npz`` (atomically)."""
-        from pipeline.atomic import atomic_open
+        from pipeline.io.atomic import atomic_open
 
         with atomic_open(path, "wb") as fh:
             np.savez_compressed(fh, x_mm=self.x_mm, y_mm=self.y_mm, z_mm=self.z_mm)
@@ -402,7 +402,7 @@ class StereoCalibration:
         """Write OpenCV FileStorage YAML (readable with ``cv2.FileStorage(path, READ)``)."""
         import cv2
 
-        from pipeline.atomic import atomic_write_text
+        from pipeline.io.atomic import atomic_write_text
 
         # built in memory, then written atomically: an interrupted write never leaves half a calibration
         fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)

@@ -88,7 +88,7 @@ def _figure(path: Path, design, frame, res, truth) -> None:
     a.set_title("skin error versus radius")
     fig.suptitle(f"StereoTacTip demo: {design.name}, Gaussian σ²=10 mm² pressed "
                  f"{-truth.robot_pose[2]:.1f} mm")
-    from pipeline.atomic import savefig_atomic
+    from pipeline.io.atomic import savefig_atomic
 
     try:
         savefig_atomic(fig, path, dpi=110)
@@ -168,7 +168,7 @@ def run_demo(out_dir: str | Path, *, design_name: str = DEFAULT_DESIGN, sigma2_m
     doc = {"design": design.name, "indenter": {"name": "gaussian", "sigma2_mm2": sigma2_mm2, "h_mm": 5.0},
            "depth_mm": depth_mm, "seed": seed, "calibration": setup.provenance, "frames": scores, "twin_invalid_frames": n_bad, "twin_s": t_twin, "pipeline_s": t_pipe,
            "units": {"*_mm": "mm", "*_ms": "ms", "*_s": "s"}, "pipeline_summary": str(out / "pipeline" / "summary.json")}
-    from pipeline.atomic import atomic_write_json
+    from pipeline.io.atomic import atomic_write_json
 
     atomic_write_json(out / "demo.json", doc)
     print(f"done in {time.perf_counter() - t0:.1f} s: figure {out / 'demo.png'}, scores {out / 'demo.json'}, "

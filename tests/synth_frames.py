@@ -1,6 +1,6 @@
 """Analytic synthetic inputs for the geometry tests.
 
-Stereo marker frames come from the product's own :mod:`pipeline.synthetic` (re-exported here);
+Stereo marker frames come from the product's own :mod:`pipeline.io.synthetic` (re-exported here);
 chessboard views for calibration are rendered analytically: every pixel (2x2 supersampled) is
 undistorted to a viewing ray, intersected with the board plane and coloured by its square.
 """
@@ -12,8 +12,8 @@ import math
 import cv2
 import numpy as np
 
-from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
-from pipeline.triangulation import UNDISTORT_CRITERIA, camera_poses
+from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
+from pipeline.geometry.triangulation import UNDISTORT_CRITERIA, camera_poses
 from pipeline.types import StereoCalibration
 
 __all__ = ["nominal_calibration", "synth_stereo_frame", "gaussian_press_markers", "render_chessboard",
@@ -52,7 +52,7 @@ def render_chessboard(K: np.ndarray, D: np.ndarray, cam_from_board: np.ndarray, 
     """Grey image (H, W) uint8 of a chessboard seen by a distorted camera.
 
     The board frame has the inner corner (0, 0) at its origin and inner corners at (i, j) * square_mm,
-    matching :func:`pipeline.calibration.board_points_mm`; a one-square white margin surrounds it.
+    matching :func:`pipeline.geometry.calibration.board_points_mm`; a one-square white margin surrounds it.
     """
     xy = _normalized_grid(K, D, size)
     R, t = cam_from_board[:3, :3], cam_from_board[:3, 3]

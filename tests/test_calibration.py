@@ -4,10 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.calibration import (CalibrationError, board_points_mm, calibrate_stereo, find_board,
+from pipeline.geometry.calibration import (CalibrationError, board_points_mm, calibrate_stereo, find_board,
                                   rectification)
 from pipeline.design import load_design
-from pipeline.triangulation import camera_poses, triangulate
+from pipeline.geometry.triangulation import camera_poses, triangulate
 from pipeline.types import MarkerMatches, StereoCalibration
 from synth_frames import chessboard_pairs, nominal_calibration, render_chessboard, rot_xyz
 

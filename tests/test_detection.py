@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline.detection import DetectionParams, detect_markers
+from pipeline.vision.detection import DetectionParams, detect_markers
 from pipeline.types import Blobs, DataError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_frames"
@@ -116,7 +116,7 @@ def test_real_tactip_frames_find_331_pins_and_no_glare(path):
     gel debris next to a pin lit its ring and vetoed it, debris specks were taken for pins, one pin was
     found twice 3.8 px apart), no two centres closer than half the median marker separation (closest
     measured: 0.79 of it), 0 detections inside the saturated glare regions."""
-    from pipeline.detection import MONOCULAR_DOME
+    from pipeline.vision.detection import MONOCULAR_DOME
 
     img = cv2.imread(str(path))
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -136,7 +136,7 @@ def test_dome_parameters_drop_debris_next_to_a_marker_and_keep_the_marker_it_lig
     """A debris speck (bright, half a marker's scale) touching a marker: the stereo defaults accept the
     speck as a squeezed marker; the dome parameters reject it and keep the marker whose ring it lights
     (the situation of the real frames' pin at (214, 197) next to a speck at (222, 193))."""
-    from pipeline.detection import MONOCULAR_DOME
+    from pipeline.vision.detection import MONOCULAR_DOME
 
     rng = np.random.default_rng(5)
     img = np.full((220, 300), 20, np.uint8)
@@ -167,7 +167,7 @@ def test_dome_parameters_are_validated():
 def test_scale_space_narrowed_to_the_marker_radius_keeps_accuracy(radius_px):
     """Three scales about the estimated radius (the streaming fast path) find the same discs with
     the same centre tolerances as the full scale space."""
-    from pipeline.detection import marker_radius_px
+    from pipeline.vision.detection import marker_radius_px
 
     rng = np.random.default_rng(int(radius_px * 10) + 1)
     img, truth = _disc_image(radius_px, rng)
@@ -185,7 +185,7 @@ def test_scale_space_narrowed_to_the_marker_radius_keeps_accuracy(radius_px):
 
 
 def test_narrowing_needs_a_radius_and_blobs():
-    from pipeline.detection import marker_radius_px
+    from pipeline.vision.detection import marker_radius_px
 
     for bad in (0.0, -2.0, float("nan"), float("inf")):
         with pytest.raises(DataError, match="radius_px"):
@@ -199,7 +199,7 @@ def test_narrowing_needs_a_radius_and_blobs():
 def test_real_frames_with_narrowed_scales_keep_count_and_reject_glare(path):
     """Measured with the scales narrowed from each frame's own first detection: 329 / 331 / 329 / 330
     pins (raw, tap_1..3), none in the glare."""
-    from pipeline.detection import marker_radius_px
+    from pipeline.vision.detection import marker_radius_px
 
     img = cv2.imread(str(path))
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
@@ -241,7 +241,7 @@ def test_compiled_pyramid_steps_match_their_opencv_definitions(shape):
     area reduction against cv2.resize INTER_AREA, within 2e-7 on [0, 1] images (float32 sums in a
     different order; measured 1.8e-7), and level 2 from the uint8 pixels against the 2x2 INTER_AREA
     mean of the float image, within 1e-7 (one rounding instead of two)."""
-    from pipeline import detection as D
+    from pipeline.vision import detection as D
 
     rng = np.random.default_rng(shape[0])
     src = rng.random(shape).astype(np.float32)
@@ -265,7 +265,7 @@ def test_compiled_fast_paths_equal_their_in_order_definitions():
       and partial sum is exact; see _window_moments), on random images and backgrounds;
     - the area reduction with a fixed, zero-padded tap count equals the CSR weights summed in order;
     - the compiled median and sorted-unique equal numpy's."""
-    from pipeline import detection as D
+    from pipeline.vision import detection as D
 
     rng = np.random.default_rng(11)
     img = rng.integers(0, 256, (60, 70), dtype=np.uint8)

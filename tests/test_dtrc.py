@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.design import load_design
-from pipeline.dtrc import DTRCTracker, NearestNeighbourTracker, code_rings, match_stereo, peel_rings
+from pipeline.vision.dtrc import DTRCTracker, NearestNeighbourTracker, code_rings, match_stereo, peel_rings
 from pipeline.types import Blobs
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_frames"
@@ -148,7 +148,7 @@ def test_real_frames_rings_are_closed_loops_consuming_all_pins(path):
     detected pin is meshed (no outlier drop), the outer ring is a closed loop of mesh edges in angular
     order, ring sizes shrink inward, and the peels consume all pins. Measured outer rings: 59-60 of the
     60 of an 11-layer 6k layout (one pin is occluded on the tap frames)."""
-    from pipeline.detection import detect_markers
+    from pipeline.vision.detection import detect_markers
 
     blobs = detect_markers(cv2.imread(str(path)))
     rings, edges, active = peel_rings(blobs, 30)
@@ -177,7 +177,7 @@ def test_detect_cli_on_a_drawn_stereo_frame(tmp_path, capsys):
     import argparse
     import json
 
-    from pipeline import cli_vision
+    from pipeline.cli import vision as cli_vision
 
     design = load_design("hexagon127")
     rng = np.random.default_rng(8)
@@ -195,7 +195,7 @@ def test_detect_cli_on_a_drawn_stereo_frame(tmp_path, capsys):
         assert v["markers_found"] == 127 and v["coded"] == 127 and v["rings_match_design"]
     assert (tmp_path / "ann" / "stereo_detect.png").is_file()
     # and the codes put the drawn markers in canonical order
-    from pipeline.detection import detect_markers
+    from pipeline.vision.detection import detect_markers
 
     m = match_stereo(detect_markers(frame[:, :640]), detect_markers(frame[:, 640:]), design)
     np.testing.assert_array_equal(m.ids, np.arange(127))
@@ -208,7 +208,7 @@ def test_mesh_boundary_from_neighbour_table_matches_edge_counting():
     from the mesh edges must equal a k-d tree's."""
     from scipy.spatial import cKDTree
 
-    from pipeline.dtrc import _Mesh, _nn_and_mesh
+    from pipeline.vision.dtrc import _Mesh, _nn_and_mesh
 
     rng = np.random.default_rng(21)
     pts = _view(load_design("circular217_dome"), rng, bulge=0.1)
@@ -230,7 +230,7 @@ def test_mesh_boundary_from_neighbour_table_matches_edge_counting():
 
 def _peel_reference(pts, active, n_rings, med_edge):
     """The numpy definition of peeling (on :class:`_Mesh`) that the compiled kernel implements."""
-    from pipeline.dtrc import _Mesh
+    from pipeline.vision.dtrc import _Mesh
 
     idx = np.nonzero(active)[0]
     n = len(pts)
@@ -271,8 +271,8 @@ def test_compiled_kernels_match_their_numpy_definitions():
     equals its vectorised definition."""
     from scipy.spatial import Delaunay
 
-    from pipeline.delaunay import delaunay_certified
-    from pipeline.dtrc import _peel, _shift_code, _triangulate
+    from pipeline.vision.delaunay import delaunay_certified
+    from pipeline.vision.dtrc import _peel, _shift_code, _triangulate
 
     def canon(simp, nb):
         key = [tuple(sorted(t)) for t in simp.tolist()]
@@ -338,7 +338,7 @@ def _affine_reference(query_xy, ref_xy, ref_px, k=8, exclude_self=False):
 def _verify_and_grow_reference(pts, ids, active, xy_d, pitch_mm, max_rounds):
     from scipy.spatial import cKDTree
 
-    from pipeline.dtrc import PREDICT_GATE
+    from pipeline.vision.dtrc import PREDICT_GATE
 
     gate, removed = PREDICT_GATE * pitch_mm, 0
     coded = np.nonzero(ids >= 0)[0]
@@ -368,8 +368,8 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
     to rounding; verification/growth and the shift coder give the same codes."""
     from scipy.spatial import cKDTree
 
-    from pipeline.kdtree import kd_build, kd_query
-    from pipeline.dtrc import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
+    from pipeline.vision.kdtree import kd_build, kd_query
+    from pipeline.vision.dtrc import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
                                _verify_and_grow)
 
     rng = np.random.default_rng(7)

@@ -9,11 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.atomic import atomic_open, atomic_write_text, is_temp_name
+from pipeline.io.atomic import atomic_open, atomic_write_text, is_temp_name
 from pipeline.design import load_design
 from pipeline.errors import SourceError
 from pipeline.runner import Reconstructor, reconstruct
-from pipeline.sources import FrameSource, open_source, record
+from pipeline.io.sources import FrameSource, open_source, record
 from pipeline.types import StereoFrame
 from stereotactip.cli import main
 from synth_frames import gaussian_press_markers, nominal_calibration, synth_stereo_frame
@@ -141,7 +141,7 @@ def test_cli_record_resume(tmp_path, capsys):
 
 
 def test_a_frame_is_never_half_written(tmp_path, monkeypatch):
-    import pipeline.atomic as atomic
+    import pipeline.io.atomic as atomic
 
     out = tmp_path / "rec"
 
@@ -210,7 +210,7 @@ def test_interrupted_reconstruction_still_writes_its_summary(recording, tmp_path
 # ----- one writer for every output -----------------------------------------------------------
 
 def test_no_output_is_written_in_place():
-    """Every file the project produces goes through pipeline.atomic: no module opens a final path for
+    """Every file the project produces goes through pipeline.io.atomic: no module opens a final path for
     writing (the patterns below are every way the code base used to)."""
     import re
     from pathlib import Path
@@ -251,7 +251,7 @@ def test_calibrate_refuses_a_board_without_size(tmp_path, argv, capsys):
 
 
 def test_result_readers_name_a_truncated_file(tmp_path):
-    from pipeline.io import read_markers_csv, read_ply_vertices, write_markers_csv, write_ply
+    from pipeline.io.files import read_markers_csv, read_ply_vertices, write_markers_csv, write_ply
     from pipeline.types import DataError, HeightMap, MarkerCloud
 
     cloud = MarkerCloud(np.arange(5), np.random.default_rng(0).normal(size=(5, 3)))

@@ -54,7 +54,7 @@ yaml_scalars = st.one_of(
 
 @pytest.fixture(scope="module")
 def calib_text():
-    from pipeline.synthetic import nominal_calibration
+    from pipeline.io.synthetic import nominal_calibration
 
     p = _DIR / "good.yaml"
     nominal_calibration(load_design("hexagon127")).save_yaml(p)
@@ -178,7 +178,7 @@ def images(draw):
 @given(img=images(), suffix=st.sampled_from([".png", ".tiff"]))
 def test_frame_readers_agree_on_any_image(img, suffix):
     """open_source (reconstruct, record) and check_frame (detect) accept exactly the same images."""
-    from pipeline.sources import check_frame, open_source
+    from pipeline.io.sources import check_frame, open_source
 
     p = _DIR / f"frame{suffix}"
     assert cv2.imwrite(str(p), img)
@@ -204,7 +204,7 @@ def test_frame_readers_agree_on_any_image(img, suffix):
 @settings(FUZZ, max_examples=40)
 @given(raw=st.binary(max_size=256), keep=st.integers(0, 2000))
 def test_truncated_or_garbage_frame_files(raw, keep):
-    from pipeline.sources import open_source
+    from pipeline.io.sources import open_source
 
     good = cv2.imencode(".png", np.zeros((480, 1280), np.uint8))[1].tobytes()
     p = _DIR / "broken.png"

@@ -1,4 +1,4 @@
-"""The certainty rule of marker identification (pipeline/identity.py): no wrong id, ever.
+"""The certainty rule of marker identification (pipeline/vision/identity.py): no wrong id, ever.
 
 Property-based (hypothesis, derandomized so that CI runs the same examples every time) over every
 built-in marker pattern: random missing and spurious blobs (spurious ones also right next to
@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 
 from benchmarks.experiments.identification import PATTERN_DESIGNS, add_defects, run_trial, view_px
 from pipeline.design import load_design
-from pipeline.dtrc import code_rings, match_stereo
-from pipeline.identity import (R_ANCHOR, R_ROTATION, REASONS, certify, lattice_of, rotation_limit_deg)
-from pipeline.synthetic import nominal_calibration
+from pipeline.vision.dtrc import code_rings, match_stereo
+from pipeline.vision.identity import (R_ANCHOR, R_ROTATION, REASONS, certify, lattice_of, rotation_limit_deg)
+from pipeline.io.synthetic import nominal_calibration
 from pipeline.types import Blobs
 
 DESIGNS = {name: load_design(name) for name in PATTERN_DESIGNS}
@@ -157,7 +157,7 @@ def test_tracker_proposes_previous_ids_without_ever_relabelling(name, step_sep):
     a small step carries them to the right blobs, a step of 0.8 separations carries every id to a
     neighbour (the nearest-neighbour tracker's failure), and the certainty rule must withdraw those.
     """
-    from pipeline.dtrc import DTRCTracker, carry_ids
+    from pipeline.vision.dtrc import DTRCTracker, carry_ids
 
     design = DESIGNS[name]
     rng = np.random.default_rng(21)
@@ -183,8 +183,8 @@ def test_tracker_proposes_previous_ids_without_ever_relabelling(name, step_sep):
 def _pressed_view(name, depth_mm, sigma_mm, lateral):
     """The left view (px, canonical id order) of an analytic Gaussian press through the nominal
     calibration and the refracting stack."""
-    from pipeline.refraction import project_through_stack
-    from pipeline.synthetic import gaussian_press_markers
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import gaussian_press_markers
 
     design = DESIGNS[name]
     xyz = gaussian_press_markers(design, depth_mm, sigma_mm=sigma_mm, lateral=lateral)
@@ -192,7 +192,7 @@ def _pressed_view(name, depth_mm, sigma_mm, lateral):
 
 
 def _without_fans(lat):
-    from pipeline.identity import Lattice
+    from pipeline.vision.identity import Lattice
 
     return Lattice(**{**lat.__dict__, "fan": np.full_like(lat.fan, -1)})
 
@@ -238,8 +238,8 @@ def test_no_wrong_id_in_sharply_pressed_views_with_defects(seed, name, sigma, la
 def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
     """The fan test is topological: two neighbours' ids swapped fold the fans that contain them, and
     a blob inside a marker's fan (a spurious blob beside it) breaks its emptiness."""
-    from pipeline.identity import _blob_of, _embedded, _tree, kd_build, use_triangulation
-    from pipeline.dtrc import _nn_and_mesh
+    from pipeline.vision.identity import _blob_of, _embedded, _tree, kd_build, use_triangulation
+    from pipeline.vision.dtrc import _nn_and_mesh
 
     name = "hexagon127"
     lat = lattice_of(DESIGNS[name])
@@ -249,7 +249,7 @@ def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
 
     def intact(pts, labels, b):
         use_triangulation(pts, _nn_and_mesh(pts)[1][0])
-        from pipeline.identity import _adj
+        from pipeline.vision.identity import _adj
         adj = _adj(pts)
         ring = np.empty(lat.fan.shape[1], np.int64)
         near = np.empty(24, np.int64)
@@ -271,9 +271,9 @@ def test_temporal_certification_follows_crowded_markers_through_a_press(name, si
     """A press sequence from rest to 5 mm (11 frames, analytic, lateral bulge 0.3): in the deepest
     frames ring coding and the local tests leave markers of the crowded tip unidentified; following
     them from the previous frame identifies every marker, and no id is ever wrong."""
-    from pipeline.dtrc import DTRCTracker
-    from pipeline.refraction import project_through_stack
-    from pipeline.synthetic import gaussian_press_markers
+    from pipeline.vision.dtrc import DTRCTracker
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import gaussian_press_markers
 
     design = DESIGNS[name]
     calib = nominal_calibration(design)
@@ -297,8 +297,8 @@ def test_tabulated_leave_one_out_fits_are_the_full_fits(name):
     bit, so that no status depends on which path computed it: on a pressed, noisy view (complete,
     with two neighbours swapped, with 10 % of the blobs removed), every blob's status is the same
     with and without the table, and every tabulated fit returns exactly the full fit's numbers."""
-    from pipeline.identity import GATE, _blob_of, _consistency, _fit, _fit_sums, _fit_tab
-    from pipeline.kdtree import kd_build
+    from pipeline.vision.identity import GATE, _blob_of, _consistency, _fit, _fit_sums, _fit_tab
+    from pipeline.vision.kdtree import kd_build
 
     design = DESIGNS[name]
     lat = _without_fans(lattice_of(design))          # every blob through the leave-one-out fits

@@ -1,6 +1,6 @@
 """Independent checks of the two geometric cores against references written here from first principles.
 
-* Refraction exists twice: the pipeline's correction (``pipeline.refraction.refract_stack_rays``: air
+* Refraction exists twice: the pipeline's correction (``pipeline.geometry.refraction.refract_stack_rays``: air
   rays carried forward through the planes with the vector Snell law) and the twin's optics
   (``twin.optics.solve_paths``: the ray parameter from camera to point by Newton's method). They share
   no refraction code (only ``pipeline.design`` for the stack's numbers); this file adds a third,
@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 from pipeline.design import load_design
-from pipeline.refraction import refract_stack_rays
-from pipeline.triangulation import triangulate
+from pipeline.geometry.refraction import refract_stack_rays
+from pipeline.geometry.triangulation import triangulate
 from pipeline.types import MarkerMatches, StereoCalibration
 from twin.optics import FlatStack, solve_paths
 

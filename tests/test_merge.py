@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import merge as M
+from pipeline.geometry import merge as M
 from pipeline.design import marker_layout, Pattern
 from pipeline.types import DataError, HeightMap
 

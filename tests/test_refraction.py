@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from pipeline.design import load_design
-from pipeline.refraction import (RefractionError, correct_exact, correct_linear, fit_refractive_index,
+from pipeline.geometry.refraction import (RefractionError, correct_exact, correct_linear, fit_refractive_index,
                                  project_through_stack, refract_stack_rays, snell)
-from pipeline.synthetic import gaussian_press_markers, nominal_calibration
-from pipeline.triangulation import camera_poses, triangulate
+from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration
+from pipeline.geometry.triangulation import camera_poses, triangulate
 from pipeline.types import MarkerCloud, MarkerMatches
 
 # Forward projection (bisection to 2^-64) and back-projection (undistortion to 1e-12) are both at double

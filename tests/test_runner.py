@@ -7,12 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import cli_geometry
+from pipeline.cli import geometry as cli_geometry
 from pipeline.design import load_design
 from benchmarks.latency import run_latency
-from pipeline.refraction import correct_exact, project_through_stack
+from pipeline.geometry.refraction import correct_exact, project_through_stack
 from pipeline.runner import Reconstructor, RunnerError, reconstruct
-from pipeline.triangulation import matched_rays
+from pipeline.geometry.triangulation import matched_rays
 from pipeline.types import DataError, StereoFrame
 from synth_frames import chessboard_pairs, gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
@@ -75,7 +75,7 @@ def test_linear_refraction_relative_to_first_frame():
     assert dz_err[central].max() < 0.04 + E2E_TOL_MM
 
 
-@pytest.mark.xfail(strict=True, reason="DTRC (pipeline/dtrc.py) identifies no marker at all when part of the "
+@pytest.mark.xfail(strict=True, reason="DTRC (pipeline/vision/dtrc.py) identifies no marker at all when part of the "
                    "pattern is hidden: 0 of the 67 shown markers here (and 0 of 112 with only x < -9 mm hidden)")
 def test_half_occluded_frame_gives_partial_result():
     design = load_design("hexagon127")
@@ -159,7 +159,7 @@ def test_cli_calibrate_from_concatenated_pairs(tmp_path, capsys):
     from pipeline.types import StereoCalibration
     calib = StereoCalibration.load_yaml(tmp_path / "c.yaml")
     assert np.allclose(calib.sensor_from_left, truth.sensor_from_left)
-    from pipeline.calibration import CalibrationError
+    from pipeline.geometry.calibration import CalibrationError
     with pytest.raises(CalibrationError, match="need at least 3"):
         _run_cli(["calibrate", str(folder / "zz_blank.png"), "--out", str(tmp_path / "d.yaml")])
 
@@ -247,14 +247,14 @@ def test_unmatched_markers_come_with_reasons(tmp_path):
     """A frame with markers hidden in one view: every unmatched id has a reason naming the view
     and the certainty rule's cause; reconstruct's summary.json carries them per frame."""
     from pipeline.runner import reconstruct
-    from pipeline.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
+    from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
     design = load_design("hexagon127")
     calib = nominal_calibration(design)
     xyz = gaussian_press_markers(design, 1.0)
     frame = synth_stereo_frame(design, calib, xyz)
     left = frame.left.copy()
-    from pipeline.refraction import project_through_stack
+    from pipeline.geometry.refraction import project_through_stack
 
     lp, _ = project_through_stack(xyz, calib, design)
     hidden = [0, 50, 126]

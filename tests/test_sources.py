@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import SourceError
-from pipeline.sources import FrameSource, open_source, record
+from pipeline.io.sources import FrameSource, open_source, record
 from pipeline.types import StereoFrame
 
 

@@ -6,9 +6,9 @@ import pytest
 import trimesh
 
 from pipeline.design import load_design
-from pipeline.io import (heightmap_mesh, read_markers_csv, read_ply_vertices, write_heightmap_npz,
+from pipeline.io.files import (heightmap_mesh, read_markers_csv, read_ply_vertices, write_heightmap_npz,
                          write_markers_csv, write_ply, write_preview_png, write_stl)
-from pipeline.surface import SurfaceError, ThinPlateSpline, fit_surface, height_map, skin_surface
+from pipeline.geometry.surface import SurfaceError, ThinPlateSpline, fit_surface, height_map, skin_surface
 from pipeline.types import HeightMap, MarkerCloud
 
 BUMP_MM, SIGMA_MM = 2.0, 5.0

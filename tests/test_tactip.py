@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from pipeline.design import DesignError, design_from_dict, list_designs, load_design, to_dict, to_toml
-from pipeline.detection import detect_markers
-from pipeline.tactip_id import identify_by_reference
+from pipeline.vision.detection import detect_markers
+from pipeline.vision.tactip_id import identify_by_reference
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -1,4 +1,4 @@
-"""Identification of a monocular dome's recorded sequence (pipeline.tactip_id.identify_sequence): the
+"""Identification of a monocular dome's recorded sequence (pipeline.vision.tactip_id.identify_sequence): the
 certainty rule on synthetic layouts, and on the 40 real taps a consistency check that does not use the
 chaining (each frame registered directly to the reference and matched by the Hungarian assignment)."""
 
@@ -12,7 +12,7 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import Delaunay, cKDTree
 
-from pipeline.tactip_id import DEFAULT_MARGIN, REASONS, identify_sequence, local_spacing_px
+from pipeline.vision.tactip_id import DEFAULT_MARGIN, REASONS, identify_sequence, local_spacing_px
 from pipeline.types import DataError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_frames"
@@ -60,7 +60,7 @@ def test_the_certainty_rule_never_gives_a_wrong_id_below_its_bound(monkeypatch):
     (1 + margin) / 2 local spacings (0.625 with the default margin) from its own expected position (it
     must be within the gate of the other position AND clearly nearer to it than to its own).
     Independent moves of up to 0.6 spacing in random directions, 200 frames: ids right or absent."""
-    import pipeline.tactip_id as tid
+    import pipeline.vision.tactip_id as tid
 
     monkeypatch.setattr(tid, "PREDICTION_PASSES", 0)
     ref = _lattice()
@@ -140,7 +140,7 @@ def test_bad_sequence_inputs_raise_data_error():
 def _real_sequence():
     import cv2
 
-    from pipeline.detection import MONOCULAR_DOME, detect_markers
+    from pipeline.vision.detection import MONOCULAR_DOME, detect_markers
 
     with TARGETS.open(newline="") as fh:
         rows = list(csv.DictReader(fh))

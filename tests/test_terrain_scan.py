@@ -17,7 +17,7 @@ CHAIN_TOL_MM = 1e-9
 
 
 def test_ideal_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
-    from pipeline.merge import tap_points_to_global
+    from pipeline.geometry.merge import tap_points_to_global
 
     tmap = T.load_terrain_map()
     cx, cy = T.x_mm_from_lon(86.0), T.y_mm_from_lat(29.0)      # southern Tibet, all above sea level
@@ -149,7 +149,7 @@ def _tap_job(region: str, index: int, tmp_path):
 @pytest.mark.render
 def test_twin_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
     """Andes tap 4: the steepest flank of the scan that the pipeline identifies whole (216/217 measured)."""
-    from pipeline.merge import tap_points_to_global
+    from pipeline.geometry.merge import tap_points_to_global
 
     tmap = T.load_terrain_map()
     job = _tap_job("andes", 4, tmp_path)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from pipeline.design import load_design
-from pipeline.synthetic import nominal_calibration
-from pipeline.triangulation import UNDISTORT_CRITERIA, TriangulationError, camera_poses, triangulate, undistort_normalized
+from pipeline.io.synthetic import nominal_calibration
+from pipeline.geometry.triangulation import UNDISTORT_CRITERIA, TriangulationError, camera_poses, triangulate, undistort_normalized
 from pipeline.types import MarkerMatches
 
 # Exact pixels: undistortion converges to ~1e-10 (UNDISTORT_CRITERIA) of normalised coordinates, i.e.

@@ -18,7 +18,7 @@ from pipeline.types import CalibrationError, StereoCalibration
 
 @pytest.fixture(scope="module")
 def calib_text(tmp_path_factory):
-    from pipeline.synthetic import nominal_calibration
+    from pipeline.io.synthetic import nominal_calibration
 
     p = tmp_path_factory.mktemp("cal") / "good.yaml"
     nominal_calibration(load_design("hexagon127")).save_yaml(p)

@@ -84,7 +84,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     out = Path(args.out)
     if args.chessboard_pairs:
-        from pipeline.atomic import atomic_write_json, imwrite_atomic
+        from pipeline.io.atomic import atomic_write_json, imwrite_atomic
         from twin.render import render_chessboard_pairs, true_calibration
 
         t0 = time.perf_counter()

@@ -1,6 +1,6 @@
 """Exact refraction through the sensor's flat optical stack (air → acrylic → gel), per camera.
 
-This is the twin's own implementation, independent of ``pipeline.refraction`` (which the benchmarks
+This is the twin's own implementation, independent of ``pipeline.geometry.refraction`` (which the benchmarks
 test against it).
 
 Geometry (sensor frame, mm; see :mod:`pipeline.design`): the interfaces are horizontal planes,

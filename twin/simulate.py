@@ -129,7 +129,7 @@ def run_motion(design: SensorDesign, indenter: Indenter, motion: str, *, rng: np
 def write_run(out_dir: str | Path, design: SensorDesign, indenter: Indenter, run: SimRun, *,
               extra_meta: dict[str, Any]) -> Path:
     """Write frame_XXXX.png, truth_XXXX.npz, calib.yaml, meta.json and preview.png to ``out_dir``."""
-    from pipeline.atomic import atomic_write_json, imwrite_atomic
+    from pipeline.io.atomic import atomic_write_json, imwrite_atomic
     from twin.render import true_calibration
 
     out = Path(out_dir)
@@ -165,7 +165,7 @@ def _preview(path: Path, frame: StereoFrame, truth: Truth) -> None:
     ax[1].set_title("indenter z (sensor frame, mm) + markers")
     fig.colorbar(im, ax=ax[1])
     fig.tight_layout()
-    from pipeline.atomic import savefig_atomic
+    from pipeline.io.atomic import savefig_atomic
 
     try:
         savefig_atomic(fig, path, dpi=90)

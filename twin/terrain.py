@@ -439,7 +439,7 @@ class TerrainMap:
     # --- persistence (the packaged asset) ---
     def save_npz(self, path: str | Path, *, extra: dict | None = None) -> None:
         """Compact asset: int16 metres (ocean = -3000), packed land bits, the grid definition (atomic)."""
-        from pipeline.atomic import atomic_open
+        from pipeline.io.atomic import atomic_open
 
         with atomic_open(path, "wb") as fh:
             self._savez(fh, extra)
@@ -508,7 +508,7 @@ class TerrainMap:
 
     def to_stl(self, path: str | Path, *, stride: int = 2, base_mm: float = BASE_MM) -> Path:
         """Write the printable binary STL (mm, map frame with the base slab below z = 0)."""
-        from pipeline.atomic import atomic_write_bytes
+        from pipeline.io.atomic import atomic_write_bytes
 
         mesh = self.to_mesh(stride=stride, base_mm=base_mm)
         path = Path(path)

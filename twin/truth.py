@@ -65,7 +65,7 @@ class Truth:
 
     def save_npz(self, path: str | Path) -> None:
         """Write all fields to one compressed ``.npz`` (atomically: a truth file is complete or absent)."""
-        from pipeline.atomic import atomic_open
+        from pipeline.io.atomic import atomic_open
 
         with atomic_open(path, "wb") as fh:
             self._savez(fh)

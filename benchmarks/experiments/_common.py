@@ -133,13 +133,13 @@ def make_indenter(name: str, **params: Any):
 def surface_grid(surface, truth, radius_mm: float, step_mm: float = 0.5) -> dict[str, np.ndarray]:
     """Reconstructed skin, true skin and indenter heights on one grid inside ``radius_mm``.
 
-    The reconstruction is resampled with the pipeline's own :func:`pipeline.surface.height_map`
+    The reconstruction is resampled with the pipeline's own :func:`pipeline.geometry.surface.height_map`
     (what a user gets); truth is interpolated from the twin's skin mesh and indenter height map.
     Returns flat arrays ``x, y, r`` (mm) and ``z_rec, z_skin, z_ind`` (mm, NaN where undefined).
     ``surface`` may be None (the pipeline identified too few markers for a surface): ``z_rec`` is
     then all NaN, so the frame counts as not reconstructed rather than aborting the experiment.
     """
-    from pipeline.surface import height_map
+    from pipeline.geometry.surface import height_map
 
     ax = np.arange(-radius_mm, radius_mm + 1e-9, step_mm)
     gx, gy = np.meshgrid(ax, ax)

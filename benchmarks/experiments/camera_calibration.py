@@ -1,7 +1,7 @@
 """camera-calibration: chessboard stereo calibration on the twin's cameras vs their true parameters.
 
 Paper (Sec. III-B-1): 20 pairs of a 9×7 board of 4 mm squares, skin removed, reprojection error
-0.12 px. Here the twin renders skin-less chessboard pairs, :func:`pipeline.calibration.calibrate_stereo`
+0.12 px. Here the twin renders skin-less chessboard pairs, :func:`pipeline.geometry.calibration.calibrate_stereo`
 calibrates them unchanged, and the result is scored against ``twin.render.true_calibration``.
 """
 
@@ -29,14 +29,14 @@ PAPER_RMS_PX = 0.12
         "rotation_error_deg": "deg",
         "reprojection_vs_truth_rms_px": "px",
     },
-    requires=("pipeline.calibration", "twin.render"),
+    requires=("pipeline.geometry.calibration", "twin.render"),
     paper={"rms_px": PaperValue(PAPER_RMS_PX, "px", "Sec. III-B-1: 20 chessboard pairs, MATLAB calibrator")},
 )
 def run(ctx: Context) -> Result:
     """Chessboard stereo calibration of the twin's cameras: RMS, baseline and focal errors vs truth."""
     import cv2
 
-    from pipeline.calibration import calibrate_stereo
+    from pipeline.geometry.calibration import calibrate_stereo
     from twin.render import render_chessboard_pairs, true_calibration
 
     design = ctx.design()

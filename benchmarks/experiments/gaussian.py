@@ -2,7 +2,7 @@
 
 z = h·exp(−(x² + y²) / 2σ²), h = 5 mm, σ² ∈ {50, 50/3, 10, 5, 5/3} mm², skins 0.5 / 1.0 / 1.5 mm,
 pressed 5 mm at 1 mm/s, 3 repetitions rotated by 120°. Each press's final frame goes through the
-unchanged pipeline; the reconstructed skin (``pipeline.surface.height_map``) is compared with the
+unchanged pipeline; the reconstructed skin (``pipeline.geometry.surface.height_map``) is compared with the
 indenter CAD over its footprint (where it dips below the rest skin plane) and with the twin's true
 skin everywhere, as a function of distance from the Gaussian's tip, with the analytic profile
 curvature beside it. The paper's finding — error follows curvature and grows with skin thickness —
@@ -62,7 +62,7 @@ def _tag(thickness_mm: float) -> str:
         "skin_penetration_max_mm": "mm",
         **{f"skin_penetration_max_mm_s{_s2tag(s)}": "mm" for s in SIGMA2_MM2},
     },
-    requires=("pipeline.runner", "pipeline.surface", "twin.simulate", "twin.render", "twin.indenters"),
+    requires=("pipeline.runner", "pipeline.geometry.surface", "twin.simulate", "twin.render", "twin.indenters"),
 )
 def run(ctx: Context) -> Result:
     """Gaussian indenters × skin thickness: reconstruction error vs distance from the tip, with curvature."""
@@ -148,7 +148,7 @@ def run(ctx: Context) -> Result:
                                 f"mean Pearson r between radial RMS error and curvature: {corr:.2f}",
                                 None if not np.isfinite(corr) else bool(corr > 0.5)))
     out.notes.append("Error vs CAD over the footprint (indenter below the rest skin plane z = 0); error vs true "
-                     "skin over the whole pattern; reconstruction via pipeline.surface.height_map on a 0.5 mm grid.")
+                     "skin over the whole pattern; reconstruction via pipeline.geometry.surface.height_map on a 0.5 mm grid.")
     out.notes.append(calibration_note(setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
 
     with paper_style() as plt:

@@ -1,10 +1,10 @@
 """identification: marker ids under missing, spurious, occluded, jittered, rotated and pressed markers.
 
-The contract of :mod:`pipeline.identity`: an id is emitted only when it is certain, so **wrong ids
+The contract of :mod:`pipeline.vision.identity`: an id is emitted only when it is certain, so **wrong ids
 are zero** in every trial; coverage (the fraction of the markers present in the view that get their
 correct id) is what the defects cost. Each trial draws one view (or a stereo pair) of a design's
 markers in pixels, applies the condition's defects and runs the unchanged
-:func:`pipeline.dtrc.code_rings` (:func:`pipeline.dtrc.match_stereo` for the stereo pair).
+:func:`pipeline.vision.dtrc.code_rings` (:func:`pipeline.vision.dtrc.match_stereo` for the stereo pair).
 
 Views: the design's rest x-y scaled to 36 px per separation, turned by a uniform in-plane rotation
 in +-15 deg, bulged radially by up to 15 % about the centre (an indentation seen from below), a
@@ -127,7 +127,7 @@ def _blobs(pts):
 
 def _complete_neighbourhood(design, gone_ids: np.ndarray) -> np.ndarray:
     """Ids whose design neighbours within 1.5 separations are all present (and which are present)."""
-    from pipeline.identity import lattice_of
+    from pipeline.vision.identity import lattice_of
 
     lat = lattice_of(design)
     ok = np.ones(len(lat.xy), bool)
@@ -141,11 +141,11 @@ def _complete_neighbourhood(design, gone_ids: np.ndarray) -> np.ndarray:
 def run_trial(design, condition: str, rng: np.random.Generator, calib=None) -> dict:
     """One trial: {"wrong": ids emitted for the wrong blob, "correct": right ids, "present": markers
     present (in both views for stereo), and for occlusion "complete"/"complete_correct"}."""
-    from pipeline.dtrc import code_rings, match_stereo
+    from pipeline.vision.dtrc import code_rings, match_stereo
 
     if condition == "press_stereo":
-        from pipeline.refraction import project_through_stack
-        from pipeline.synthetic import gaussian_press_markers
+        from pipeline.geometry.refraction import project_through_stack
+        from pipeline.io.synthetic import gaussian_press_markers
 
         R = design.pattern_radius_mm()
         c = rng.uniform(-0.3, 0.3, 2) * R
@@ -211,11 +211,11 @@ def run_trial(design, condition: str, rng: np.random.Generator, calib=None) -> d
         **{f"coverage_defects_3_{_key(d)}": "1" for d in PATTERN_DESIGNS},
         **{f"coverage_defects_10_{_key(d)}": "1" for d in PATTERN_DESIGNS},
     },
-    requires=("pipeline.dtrc", "pipeline.identity"),
+    requires=("pipeline.vision.dtrc", "pipeline.vision.identity"),
 )
 def run(ctx: Context) -> Result:
     """Marker ids under missing/spurious/occluded/jittered/rotated/pressed markers: wrong ids (must be 0) and coverage."""
-    from pipeline.synthetic import nominal_calibration
+    from pipeline.io.synthetic import nominal_calibration
 
     n_trials = int(ctx.param("n_trials", 1000, quick=12))
     names = tuple(ctx.param("designs", PATTERN_DESIGNS))

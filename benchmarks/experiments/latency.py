@@ -34,7 +34,7 @@ def _key(name: str) -> str:
         "matched_min": "1",
         "frames_per_design": "1",
     },
-    requires=("benchmarks.latency", "pipeline.runner", "pipeline.dtrc", "pipeline.detection"),
+    requires=("benchmarks.latency", "pipeline.runner", "pipeline.vision.dtrc", "pipeline.vision.detection"),
     paper={"median_total_ms": PaperValue(PAPER_MS, "ms", "Sec. III-C: average latency, raw image to surface, Ryzen 7 5800X")},
 )
 def run(ctx: Context) -> Result:
@@ -77,7 +77,7 @@ def run(ctx: Context) -> Result:
                      f"background load: {load} process(es) spinning on a core each "
                      "(--param background_procs=N); "
                      f"refraction '{raw.get('refraction', '?')}'; "
-                     f"{n_frames} frames per design after one warm-up frame; synthetic frames (pipeline.synthetic).")
+                     f"{n_frames} frames per design after one warm-up frame; synthetic frames (pipeline.io.synthetic).")
     out.findings.append(Finding(f"the pipeline reconstructs a frame in about {PAPER_MS:.0f} ms",
                                 f"median {max(medians):.1f} ms (worst design), p95 {max(p95s):.1f} ms on this machine",
                                 bool(max(medians) <= PAPER_MS)))

@@ -56,7 +56,7 @@ class RestTruth:
         **{f"matched_fraction_{k}": "1" for k in KINDS},
         **{f"localisation_rms_mm_{k}": "mm" for k in KINDS},
     },
-    requires=("pipeline.runner", "pipeline.dtrc", "twin.render"),
+    requires=("pipeline.runner", "pipeline.vision.dtrc", "twin.render"),
     paper={"matched_fraction_min": PaperValue(1.0, "1", "Sec. IV-A: the 3-D positions of all markers are obtained")},
 )
 def run(ctx: Context) -> Result:

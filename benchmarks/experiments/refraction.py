@@ -6,7 +6,7 @@ displacement |P'_t1 P'_t2| is linear with slope n_gel = 1.51 (acrylic 1.57, elas
 
 Here the twin renders the board through its exact optical stack at each depth (per-trial pose jitter
 from the seeded rng), the pipeline's stages (detect → match → triangulate) measure the apparent
-depth, and :func:`pipeline.refraction.fit_refractive_index` fits n. The slope the twin's optics
+depth, and :func:`pipeline.geometry.refraction.fit_refractive_index` fits n. The slope the twin's optics
 imply is computed independently: the board's true marker points projected with the twin's exact
 ray tracer (``twin.optics.project_exact``, no image), triangulated by the pipeline without refraction
 correction, fitted the same way. The depth error of the paper's linear correction and of the exact
@@ -66,16 +66,16 @@ def board_markers(design, sensor_from_board: np.ndarray) -> np.ndarray:
         "exact_depth_error_max_mm": "mm",
         "exact_absolute_error_rms_mm": "mm",
     },
-    requires=("pipeline.detection", "pipeline.dtrc", "pipeline.triangulation", "pipeline.refraction",
+    requires=("pipeline.vision.detection", "pipeline.vision.dtrc", "pipeline.geometry.triangulation", "pipeline.geometry.refraction",
               "twin.render", "twin.optics"),
     paper={"n_fit": PaperValue(PAPER_N, "1", "Sec. IV-C: linear fit of |P_t1P_t2| vs |P'_t1P'_t2|, 0–8 mm, 5 trials")},
 )
 def run(ctx: Context) -> Result:
     """Skin-less marker-board press 0–8 mm: fitted n vs the twin's optics, linear vs exact depth error."""
-    from pipeline.detection import detect_markers
-    from pipeline.dtrc import match_stereo
-    from pipeline.refraction import correct_exact, correct_linear, fit_refractive_index
-    from pipeline.triangulation import triangulate
+    from pipeline.vision.detection import detect_markers
+    from pipeline.vision.dtrc import match_stereo
+    from pipeline.geometry.refraction import correct_exact, correct_linear, fit_refractive_index
+    from pipeline.geometry.triangulation import triangulate
     from pipeline.types import MarkerMatches
     from twin.optics import project_exact
     from twin.render import StereoRenderer

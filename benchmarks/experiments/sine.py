@@ -87,7 +87,7 @@ def _validity(truth) -> dict:
         "valid_cells": "1",
         "failed_cells": "1",
     },
-    requires=("pipeline.runner", "pipeline.surface", "twin.simulate", "twin.render", "twin.indenters"),
+    requires=("pipeline.runner", "pipeline.geometry.surface", "twin.simulate", "twin.render", "twin.indenters"),
 )
 def run(ctx: Context) -> Result:
     """Sine indenters × marker separation: upper-surface and lowest-point reconstruction error."""

@@ -31,7 +31,7 @@ from benchmarks.registry import Context, Finding, Result, register
         "rms_err_reachable_mm_mean_all": "mm",
         "resolved_fraction_all": "1",
     },
-    requires=("benchmarks.terrain", "twin.terrain", "pipeline.merge"),
+    requires=("benchmarks.terrain", "twin.terrain", "pipeline.geometry.merge"),
 )
 def run(ctx: Context) -> Result:
     """World-relief tap scan (nine regions; quick: two small ones): merged reconstruction vs the DEM."""

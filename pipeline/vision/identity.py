@@ -1,7 +1,7 @@
 """The certainty rule of marker identification: an id is emitted only when the geometry leaves no
 other reading; every other marker is unmatched, with a reason.
 
-Ring coding (:mod:`pipeline.dtrc`), a lattice registration and the previous frame only *propose*
+Ring coding (:mod:`pipeline.vision.dtrc`), a lattice registration and the previous frame only *propose*
 ids. A proposal becomes an identification through three tests, each about the sensor's geometry:
 
 1. **Local consistency.** A marker's closed design neighbourhood (the marker and its identified
@@ -49,7 +49,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.kdtree import kd_build, kd_query
+from pipeline.vision.kdtree import kd_build, kd_query
 
 __all__ = ["GATE", "GROW_GATE", "ANCHOR_EVIDENCE", "MAX_STRETCH", "ROTATION_MARGIN_DEG", "REASONS",
            "lattice_of", "consistent", "certify", "certify_whole", "contradicted", "follow", "grow", "register_seed", "rotation_limit_deg", "use_triangulation"]

@@ -46,12 +46,12 @@ import numba
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from pipeline.delaunay import delaunay_certified
+from pipeline.vision.delaunay import delaunay_certified
 from pipeline.design import SensorDesign
-from pipeline.identity import (R_CONTRADICTED, R_NO_BLOB, REASONS, certify, certify_whole, consistent, contradicted,
+from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, REASONS, certify, certify_whole, consistent, contradicted,
                                follow, grow, lattice_of,
                                register_seed, use_triangulation)
-from pipeline.kdtree import kd_build, kd_query
+from pipeline.vision.kdtree import kd_build, kd_query
 from pipeline.types import Blobs, MarkerMatches
 
 __all__ = ["RingCoding", "code_rings", "carry_ids", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
@@ -197,7 +197,7 @@ def _triangulate(pts: np.ndarray, *, with_exact: bool = False):
     vertex k, -1 on the hull); joggled when exact lattices leave co-circular points unused.
     ``with_exact`` also returns whether the triangulation is the exact (unjoggled) one using every point.
 
-    The certified compiled triangulation (:func:`pipeline.delaunay.delaunay_certified`) is used when it exists; otherwise Qhull.
+    The certified compiled triangulation (:func:`pipeline.vision.delaunay.delaunay_certified`) is used when it exists; otherwise Qhull.
     Triangle order and vertex rotation may differ between the two; nothing downstream depends on them.
     """
     empty = np.empty((0, 3), np.intp)
@@ -932,12 +932,12 @@ SEED_BELOW = 0.9
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
                  msgs: list[str], previous=None) -> tuple[np.ndarray, np.ndarray]:
-    """The certainty rule (:mod:`pipeline.identity`) applied to the ring-coding proposal and, when
+    """The certainty rule (:mod:`pipeline.vision.identity`) applied to the ring-coding proposal and, when
     ``previous`` (the previous frame's certain markers: xy_px (M, 2), ids (M,)) is given and the
     proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
     by growth; when that leaves markers unidentified, also to the placements of a lattice
     registration independent of ring peeling. Markers still unidentified are then followed from the
-    previous frame (:func:`pipeline.identity.follow`). Returns (certified id per blob, reason code
+    previous frame (:func:`pipeline.vision.identity.follow`). Returns (certified id per blob, reason code
     per design id)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)

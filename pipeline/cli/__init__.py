@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline import cli_geometry, cli_vision
+from pipeline.cli import geometry as cli_geometry, vision as cli_vision
 from pipeline.design import list_designs, load_design
 
 

@@ -1,6 +1,6 @@
 """A compiled k-d tree that returns exactly what ``scipy.spatial.cKDTree`` returns, ties included.
 
-:mod:`pipeline.dtrc` predicts design slots from local affine fits to the k nearest coded DESIGN
+:mod:`pipeline.vision.dtrc` predicts design slots from local affine fits to the k nearest coded DESIGN
 points. Design lattices tie exactly (a quarter of the hexagon slots have two design points at the
 same float distance around the 8th neighbour), and which tied point enters the fit changes the
 prediction far beyond rounding. Its numpy definition took the neighbours from cKDTree, so these

@@ -1,7 +1,7 @@
 """Compiled Delaunay triangulation of small 2-D point sets, certified to be THE Delaunay triangulation.
 
 Qhull (``scipy.spatial.Delaunay``) costs ~0.3 ms for 127 points, most of it set-up, which was a large
-part of the per-frame budget of marker identification (:mod:`pipeline.dtrc`). So the triangulation is
+part of the per-frame budget of marker identification (:mod:`pipeline.vision.dtrc`). So the triangulation is
 computed by a compiled sweep-hull (Delaunator's algorithm: points added in order of distance from a
 seed circumcentre, the convex hull kept as a linked list, Lawson flips) and then CERTIFIED: every
 point used, every triangle counter-clockwise, every interior edge strictly locally Delaunay and the

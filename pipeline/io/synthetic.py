@@ -1,7 +1,7 @@
 """Analytic synthetic stereo frames (no physics, no renderer) for the latency benchmark and tests.
 
 Markers at known 3-D positions are projected through the exact flat refraction stack
-(:func:`pipeline.refraction.project_through_stack`) and drawn as anti-aliased bright discs on a dark
+(:func:`pipeline.geometry.refraction.project_through_stack`) and drawn as anti-aliased bright discs on a dark
 background with OpenCV. This is the pipeline's own analytic check; the digital twin (``twin/``) is
 the independent, physically rendered one.
 """
@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from pipeline.design import SensorDesign
-from pipeline.refraction import project_through_stack
+from pipeline.geometry.refraction import project_through_stack
 from pipeline.types import FRAME_HEIGHT_PX, FRAME_WIDTH_PX, StereoCalibration, StereoFrame
 
 __all__ = ["nominal_calibration", "synth_stereo_frame", "gaussian_press_markers", "BACKGROUND_GREY",

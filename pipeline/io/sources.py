@@ -287,7 +287,7 @@ def record(source: FrameSource | int | str | os.PathLike, out_dir: str | os.Path
            resume: bool = False) -> int:
     """Save frames losslessly as ``frame_000000.png`` ... plus ``timestamps.csv``.
 
-    Each frame is written atomically (:mod:`pipeline.atomic`: encoded, written to a temporary file,
+    Each frame is written atomically (:mod:`pipeline.io.atomic`: encoded, written to a temporary file,
     renamed), then its row ``index,timestamp_s,file`` is appended to ``timestamps.csv`` and flushed, so
     an interrupted recording (Ctrl-C, a kill, a source error) keeps every frame it listed, complete;
     the exception is re-raised after the files are closed.
@@ -313,7 +313,7 @@ def record(source: FrameSource | int | str | os.PathLike, out_dir: str | os.Path
     int
         Number of frames written by this call.
     """
-    from pipeline.atomic import atomic_write_text, imwrite_atomic
+    from pipeline.io.atomic import atomic_write_text, imwrite_atomic
 
     if max_frames is not None and max_frames < 0:
         raise SourceError(f"record: max_frames must be >= 0, got {max_frames}")

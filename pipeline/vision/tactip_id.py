@@ -1,7 +1,7 @@
 """Marker identification and image statistics for monocular dome (TacTip-type) frames.
 
 A TacTip's dome is seen from inside by one camera: there is no second view to match, and the ring coding
-of :mod:`pipeline.dtrc` assumes a flat module's layout. Identification here is by position instead: a
+of :mod:`pipeline.vision.dtrc` assumes a flat module's layout. Identification here is by position instead: a
 reference frame's markers carry the ids (assigned once, e.g. by matching them to the design's projected
 pin layout, or simply the reference frame's own marker indices), and every other frame's markers take the
 id of the nearest reference marker when the two are each other's nearest neighbour and closer than

@@ -1,7 +1,7 @@
 """Writers for reconstruction results: markers CSV, PLY (points/normals or mesh), STL, NPZ, PNG preview.
 
 All coordinates are written as given (sensor frame, mm). Every writer is atomic
-(:mod:`pipeline.atomic`): a result file is complete or absent, never half written.
+(:mod:`pipeline.io.atomic`): a result file is complete or absent, never half written.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic import atomic_open, savefig_atomic
+from pipeline.io.atomic import atomic_open, savefig_atomic
 from pipeline.types import DataError, HeightMap, MarkerCloud
 
 __all__ = ["write_markers_csv", "read_markers_csv", "write_ply", "read_ply_vertices", "heightmap_mesh",

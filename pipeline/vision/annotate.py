@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipeline.dtrc import RingCoding
+from pipeline.vision.dtrc import RingCoding
 from pipeline.types import Blobs
 
 __all__ = ["ring_colour", "draw_blobs", "draw_mesh", "draw_coding", "annotate_view"]

@@ -22,13 +22,13 @@ def detect_image(path: Path, design, *, out_dir: Path | None = None) -> dict:
     Writes ``<stem>_detect.png`` into ``out_dir`` (default: next to the image) and returns a JSON-able
     report: per view the marker count, ring sizes found vs expected, uncoded/unmatched counts.
     """
-    from pipeline.annotate import annotate_view
-    from pipeline.detection import detect_markers
-    from pipeline.dtrc import code_rings
+    from pipeline.vision.annotate import annotate_view
+    from pipeline.vision.detection import detect_markers
+    from pipeline.vision.dtrc import code_rings
 
-    from pipeline.sources import check_frame
+    from pipeline.io.sources import check_frame
 
-    # the same rule as every other reader of frames (pipeline.sources.check_frame): a frame that
+    # the same rule as every other reader of frames (pipeline.io.sources.check_frame): a frame that
     # reconstruct would refuse is refused here too, rather than detected as one wide "view"
     img = check_frame(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), str(path))
     h, w = img.shape[:2]
@@ -51,7 +51,7 @@ def detect_image(path: Path, design, *, out_dir: Path | None = None) -> dict:
     out_dir = Path(out_dir) if out_dir is not None else path.parent
     out_dir.mkdir(parents=True, exist_ok=True)
     out_png = out_dir / f"{path.stem}_detect.png"
-    from pipeline.atomic import imwrite_atomic
+    from pipeline.io.atomic import imwrite_atomic
 
     try:
         imwrite_atomic(out_png, np.concatenate(panels, axis=1))
@@ -70,9 +70,9 @@ def _natural_key(path: Path):
 def identify_recording(paths: list[Path], design, *, reference: int = 0) -> dict:
     """Markers and their ids in every frame of a monocular dome (TacTip-type) recording.
 
-    Each frame is detected with :data:`pipeline.detection.MONOCULAR_DOME`; the ids are the reference
+    Each frame is detected with :data:`pipeline.vision.detection.MONOCULAR_DOME`; the ids are the reference
     frame's marker indices (its detections sorted by v then u) and are carried to the other frames by
-    :func:`pipeline.tactip_id.identify_sequence` in frame order (consecutive frames move markers
+    :func:`pipeline.vision.tactip_id.identify_sequence` in frame order (consecutive frames move markers
     little). Returns a JSON-able report: per frame every detected marker's centre, id (``None`` when
     not identified) and the reason it was not.
 
@@ -83,8 +83,8 @@ def identify_recording(paths: list[Path], design, *, reference: int = 0) -> dict
     UserError
         ``reference`` is not a frame index.
     """
-    from pipeline.detection import MONOCULAR_DOME, detect_markers
-    from pipeline.tactip_id import REASONS, identify_sequence
+    from pipeline.vision.detection import MONOCULAR_DOME, detect_markers
+    from pipeline.vision.tactip_id import REASONS, identify_sequence
 
     if not (0 <= reference < len(paths)):
         raise UserError(f"--reference {reference}: the recording has frames 0..{len(paths) - 1}")
@@ -174,7 +174,7 @@ def _detect(args: argparse.Namespace) -> int:
 
 
 def _record(args: argparse.Namespace) -> int:
-    from pipeline.sources import open_source, record
+    from pipeline.io.sources import open_source, record
 
     if args.max_frames is not None and args.max_frames < 0:
         raise UserError(f"--max-frames must be >= 0, got {args.max_frames}")

@@ -25,7 +25,7 @@ class CliInputError(UserError, ValueError):
 
 def read_image(path: Path) -> np.ndarray:
     """An 8-bit grey or BGR image of any size (a BGRA image loses its alpha, as frames do)."""
-    from pipeline.sources import drop_alpha
+    from pipeline.io.sources import drop_alpha
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
@@ -36,8 +36,8 @@ def read_image(path: Path) -> np.ndarray:
 
 
 def read_frame(path: Path) -> np.ndarray:
-    """A stereo frame by :func:`pipeline.sources.check_frame`'s rule."""
-    from pipeline.sources import check_frame
+    """A stereo frame by :func:`pipeline.io.sources.check_frame`'s rule."""
+    from pipeline.io.sources import check_frame
 
     return check_frame(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), str(path))
 
@@ -66,7 +66,7 @@ def frames_from_paths(paths: list[str]):
 
 
 def _open_source(spec: str):
-    from pipeline.sources import open_source
+    from pipeline.io.sources import open_source
 
     # an unreadable frame in a recording (cut off mid-write, say) is skipped and named, not fatal
     return open_source(spec, skip_unreadable=True)
@@ -113,7 +113,7 @@ def _square_mm(text: str) -> float:
 
 
 def _calibrate(args: argparse.Namespace) -> int:
-    from pipeline.calibration import calibrate_stereo
+    from pipeline.geometry.calibration import calibrate_stereo
     from pipeline.design import load_design
 
     design = load_design(args.design)
@@ -138,7 +138,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _calibrate_refraction(args: argparse.Namespace) -> int:
     from pipeline.design import load_design
-    from pipeline.refraction import RefractionError, fit_index_from_press
+    from pipeline.geometry.refraction import RefractionError, fit_index_from_press
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)

@@ -10,7 +10,7 @@ Two methods, both returning :class:`~pipeline.types.MarkerCloud` in the sensor f
   to the left camera and on to the sensor frame.
 
 The positions are *apparent*: the rays are straight lines in air, so markers seen through the
-acrylic + gel stack come out shallower than they are. :mod:`pipeline.refraction` corrects that.
+acrylic + gel stack come out shallower than they are. :mod:`pipeline.geometry.refraction` corrects that.
 
 References
 ----------
@@ -177,7 +177,7 @@ def _general(matches: MarkerMatches, calib: StereoCalibration, rays=None) -> np.
 
 
 def _disparity(matches: MarkerMatches, calib: StereoCalibration) -> np.ndarray:
-    from pipeline.calibration import rectification
+    from pipeline.geometry.calibration import rectification
 
     rect = rectification(calib, with_maps=False)
     ul = cv2.undistortPoints(matches.left_px.reshape(-1, 1, 2), calib.K1, calib.D1, R=rect.R1, P=rect.P1,

@@ -6,7 +6,7 @@ The optical stack is flat (sensor frame, planes z = const)::
                         | z = design.gel_acrylic_z_mm | gel (n_g) with the markers
 
 Light from a marker bends away from the normal at each interface, so straight-ray triangulation
-(:mod:`pipeline.triangulation`) places markers too close to the cameras, and a depth change dz
+(:mod:`pipeline.geometry.triangulation`) places markers too close to the cameras, and a depth change dz
 appears as roughly dz / n_g.
 
 Two corrections:
@@ -31,7 +31,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
-from pipeline.triangulation import camera_poses, closest_points, matched_rays
+from pipeline.geometry.triangulation import camera_poses, closest_points, matched_rays
 from pipeline.types import MarkerCloud, MarkerMatches, StereoCalibration
 
 __all__ = ["RefractionError", "snell", "refract_stack_rays", "correct_exact", "correct_linear",
@@ -121,7 +121,7 @@ def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: Sens
     design : SensorDesign
         Interface planes and refractive indices (``n_gel`` / ``n_acrylic`` override the indices).
     rays : optional
-        :func:`pipeline.triangulation.matched_rays` of ``matches`` if already computed.
+        :func:`pipeline.geometry.triangulation.matched_rays` of ``matches`` if already computed.
 
     Returns
     -------

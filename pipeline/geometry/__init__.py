@@ -1,0 +1,5 @@
+"""Geometry: from matched marker pixels to the skin surface in millimetres.
+
+calibration (stereo chessboard) -> triangulation (apparent points) -> refraction (through the flat
+acrylic + gel stack) -> surface (skin surface, height maps) -> merge (many taps into one map).
+"""
