@@ -13,6 +13,12 @@ from pipeline.vision.kdtree import kd_build, kd_query
 
 #: are 1 pitch apart, so 0.4 leaves a 0.2-pitch margin to the half-way point).
 PREDICT_GATE = 0.4
+#: Coded design neighbours a slot's local affine prediction is fitted to (a hexagonal slot's first
+#: shell holds 6, a square slot's first shell with its diagonals 8).
+PREDICT_NEIGHBOURS = 8
+#: Ridge (mm^2) added to the diagonal of the fits' normal matrix: keeps collinear neighbours
+#: solvable, far below any real neighbourhood's scatter (~ separation^2 per point).
+PREDICT_RIDGE = 1e-9
 
 
 # ----- prediction: kd-tree neighbours and local affine fits ---------------------------------
@@ -30,7 +36,7 @@ PREDICT_GATE = 0.4
 def _affine_fit(query_xy, ref_xy, ref_px, k, exclude_self):
     """Predict image positions of design points from local affine fits to coded neighbours.
 
-    Least squares (``+ 1e-9 I`` on the normal matrix) of px ~ [x, y, 1] A over the ``k`` nearest
+    Least squares (``+ PREDICT_RIDGE I`` on the normal matrix) of px ~ [x, y, 1] A over the ``k`` nearest
     reference design points of each query (cKDTree's, without the query itself when
     ``exclude_self``). Returns (predicted px (Q, 2), local pixels per design mm (Q,) = sqrt |det A_2x2|).
     """
@@ -55,7 +61,7 @@ def _affine_fit(query_xy, ref_xy, ref_px, k, exclude_self):
                 B[i, 0] += X[i] * ref_px[r, 0]
                 B[i, 1] += X[i] * ref_px[r, 1]
         for i in range(3):
-            M[i, i] += 1e-9  # as the numpy definition (keeps collinear neighbours solvable)
+            M[i, i] += PREDICT_RIDGE  # as the numpy definition
         # Gaussian elimination with partial pivoting (M is positive definite)
         for c in range(3):
             p = c
@@ -91,17 +97,17 @@ def _verify_and_grow(pts, ids, active, xy_d, pitch_mm, max_rounds):
     """Uncode ids that disagree with their coded neighbours, then code free slots by prediction.
 
     Verification: each coded blob must lie within ``PREDICT_GATE`` local pitches of its slot predicted
-    from its 8 nearest coded design neighbours. Growth (up to ``max_rounds`` rounds): every free slot
-    is predicted from the coded ones and takes the nearest candidate blob (active, uncoded) when it is
-    within the gate and the slot is that blob's nearest prediction (mutual nearest). Modifies ``ids``
-    in place; returns the number of ids removed by verification.
+    from its :data:`PREDICT_NEIGHBOURS` nearest coded design neighbours. Growth (up to ``max_rounds``
+    rounds): every free slot is predicted from the coded ones and takes the nearest candidate blob
+    (active, uncoded) when it is within the gate and the slot is that blob's nearest prediction
+    (mutual nearest). Modifies ``ids`` in place; returns the number of ids removed by verification.
     """
     gate = PREDICT_GATE * pitch_mm
     removed = 0
     coded = np.flatnonzero(ids >= 0)
     if len(coded) >= 4:
         ref_xy = xy_d[ids[coded]]
-        pred, sc = _affine_fit(ref_xy, ref_xy, pts[coded], 8, True)
+        pred, sc = _affine_fit(ref_xy, ref_xy, pts[coded], PREDICT_NEIGHBOURS, True)
         for i in range(len(coded)):
             dx, dy = pred[i, 0] - pts[coded[i], 0], pred[i, 1] - pts[coded[i], 1]
             if math.sqrt(dx * dx + dy * dy) > gate * sc[i]:
@@ -118,7 +124,7 @@ def _verify_and_grow(pts, ids, active, xy_d, pitch_mm, max_rounds):
         cand = np.flatnonzero(active & (ids < 0))
         if len(coded) < 4 or len(free) == 0 or len(cand) == 0:
             break
-        pred, sc = _affine_fit(xy_d[free], xy_d[ids[coded]], pts[coded], 8, False)
+        pred, sc = _affine_fit(xy_d[free], xy_d[ids[coded]], pts[coded], PREDICT_NEIGHBOURS, False)
         cand_px = pts[cand]
         cand_tree = kd_build(cand_px)
         pred_tree = kd_build(pred)
@@ -159,7 +165,7 @@ def _shift_by_prediction(members, d_ids, pts, ids, xy_d, pitch_mm):
     coded = np.flatnonzero(ids >= 0)
     if len(coded) < 4:
         return -1
-    pred, sc = _affine_fit(xy_d[d_ids], xy_d[ids[coded]], pts[coded], 8, False)
+    pred, sc = _affine_fit(xy_d[d_ids], xy_d[ids[coded]], pts[coded], PREDICT_NEIGHBOURS, False)
     n = len(d_ids)
     cost = np.empty(n)
     for s in range(n):

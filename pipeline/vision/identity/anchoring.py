@@ -12,8 +12,9 @@ import numpy as np
 
 from pipeline.vision.identity.consistency import _consistency
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_CENTRE,
-                                                RING_ROUND)
-from pipeline.vision.identity.fits import _fit, _fit_sums
+                                                RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM, RING_MIN_MARKERS,
+                                                RING_ROUND, RING_SHAPE)
+from pipeline.vision.identity.fits import _design_half, _fit, _fit_sums, _gather, _image_half
 from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
 from pipeline.vision.kdtree import kd_query
 
@@ -37,15 +38,7 @@ def _beyond_hits(pts, tree, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gat
             continue
         slots[0] = s
         blobs[0] = b
-        m = 1
-        for k in range(K):
-            j = nbr2[s, k]
-            if j < 0:
-                break
-            if blob_of[j] >= 0:
-                slots[m] = j
-                blobs[m] = blob_of[j]
-                m += 1
+        m = _gather(s, nbr2, 0, K, blob_of, slots, blobs, 1)
         ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
         acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc)
         ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, -1, ox, oy, ou, ov, pitch)
@@ -126,7 +119,7 @@ def _centre_holds(pts, slot_of, members, lat) -> bool:
     slots) fit an affine image of the design ring to within :data:`RING_ROUND` of ring 1's mean
     radius, the three fits share their centre (within :data:`RING_CENTRE`: an off-centre press
     moves the rings' centres apart by ~0.1 radius) and their shape (linear parts proportional to
-    within 25 %: a press changes each ring's radius, a camera's perspective is common to all).
+    within :data:`RING_SHAPE`: a press changes each ring's radius, a camera's perspective is common to all).
     About a marker of ring 1 the pattern also shows rings of about six and twelve markers, but its
     third ring is not eighteen markers 20 deg apart."""
     return _centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
@@ -157,29 +150,19 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
                 sel[m] = b
                 slots[m] = slot_of[b]
                 m += 1
-        if m < max(int(math.ceil(2.0 / 3.0 * size)), 4):
+        if m < max(int(math.ceil(RING_COVERAGE * size)), RING_MIN_MARKERS):
             return False
         acc = _fit_sums(xy, pts, slots, sel, m, c0x, c0y, 0.0, 0.0, acc)
-        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, sel, acc, -1, c0x, c0y, 0.0, 0.0, 1e-9)
+        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, sel, acc, -1, c0x, c0y, 0.0, 0.0,
+                                                  RING_FIT_NO_COLLINEARITY_MM)
         if ok == 0:
             return False
         if ok < 0:
             # refit without the plausibility limits: a ring is judged by its residuals below
-            cnt = acc[0]
-            mx, my, mu, mv = acc[1] / cnt, acc[2] / cnt, acc[3] / cnt, acc[4] / cnt
-            sxx = acc[5] - cnt * mx * mx
-            sxy = acc[6] - cnt * mx * my
-            syy = acc[7] - cnt * my * my
-            det = sxx * syy - sxy * sxy
-            i00, i01, i11 = syy / det, -sxy / det, sxx / det
-            cux = acc[8] - cnt * mu * mx
-            cuy = acc[9] - cnt * mu * my
-            cvx = acc[10] - cnt * mv * mx
-            cvy = acc[11] - cnt * mv * my
-            l00 = cux * i00 + cuy * i01
-            l01 = cux * i01 + cuy * i11
-            l10 = cvx * i00 + cvy * i01
-            l11 = cvx * i01 + cvy * i11
+            _, mx, my, i00, i01, i11 = _design_half(acc[0], acc[1], acc[2], acc[5], acc[6], acc[7],
+                                                    RING_FIT_NO_COLLINEARITY_MM)
+            mu, mv, l00, l01, l10, l11 = _image_half(acc[0], mx, my, acc[3], acc[4], acc[8], acc[9], acc[10], acc[11],
+                                                     i00, i01, i11)
         L[k - 1, 0, 0], L[k - 1, 0, 1], L[k - 1, 1, 0], L[k - 1, 1, 1] = l00, l01, l10, l11
         cen[k - 1, 0] = mu - l00 * mx - l01 * my
         cen[k - 1, 1] = mv - l10 * mx - l11 * my
@@ -218,7 +201,7 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
             for j in range(2):
                 dev += (L[k, i, j] - sc * L[0, i, j]) ** 2
                 ref += (sc * L[0, i, j]) ** 2
-        if math.sqrt(dev) > 0.25 * math.sqrt(ref):
+        if math.sqrt(dev) > RING_SHAPE * math.sqrt(ref):
             return False
     for b in members:
         if layer_of[slot_of[b]] == 0:

@@ -16,7 +16,7 @@ from pipeline.vision.identity.consistency import _blob_of, _consistency, consist
 from pipeline.vision.identity.constants import (_NEED_TREE, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
                                                 FOLLOW_GATE, FOLLOW_NEIGHBOURS, GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS,
                                                 R_ANCHOR, R_FEW, R_NO_BLOB, R_OK, R_ROTATION)
-from pipeline.vision.identity.fits import _fit, _fit_sums
+from pipeline.vision.identity.fits import _fit, _fit_sums, _gather
 from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
 from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
 from pipeline.vision.kdtree import kd_build
@@ -36,15 +36,7 @@ def _predict_free(pts, blob_of, xy, nbr, pitch):
     for s in range(N):
         if blob_of[s] >= 0:
             continue
-        m = 0
-        for k in range(K):
-            j = nbr[s, k]
-            if j < 0:
-                break
-            if blob_of[j] >= 0:
-                slots[m] = j
-                blobs[m] = blob_of[j]
-                m += 1
+        m = _gather(s, nbr, 0, K, blob_of, slots, blobs, 0)
         if m < 3:
             continue
         ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[blobs[0], 0], pts[blobs[0], 1]

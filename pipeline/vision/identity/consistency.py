@@ -13,7 +13,7 @@ import numpy as np
 from pipeline.vision.identity.constants import (_NEED_TREE, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, LOCAL_ONLY,
                                                 MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT)
 from pipeline.vision.identity.fans import _embedded
-from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab
+from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
 from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
 from pipeline.vision.kdtree import kd_query
 
@@ -36,7 +36,6 @@ def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nb
     n = len(slot_of)
     status = np.zeros(n, np.int64)
     K = nbr2.shape[1]
-    K1 = nbr.shape[1]
     slots = np.empty(K + 1, np.int64)
     blobs = np.empty(K + 1, np.int64)
     acc = np.empty(12)
@@ -64,7 +63,7 @@ def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nb
             st = _NEED_TREE
         else:
             st = _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots,
-                             blobs, acc, two, two_d2, K, K1)
+                             blobs, acc, two, two_d2, K)
         status[b] = st
         if st == R_INCONSISTENT:
             n_bad += 1
@@ -73,39 +72,22 @@ def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nb
 
 @numba.njit(cache=True)
 def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc, two,
-                two_d2, K, K1):
+                two_d2, K):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
 
     The immediate design neighbours ``nbr[s]`` are the first entries of ``nbr2[s]`` (both sorted
     by distance; :func:`lattice_of` checks it), so the identified neighbourhood is gathered in one
     pass with the immediate ones first, and the second shell only when it is fitted at all."""
-    n_design = 0
-    for k1 in range(K1):
-        if nbr[s, k1] < 0:
-            break
-        n_design += 1
+    n_design = _row_length(nbr, s)
     slots[0] = s
     blobs[0] = b
-    m = 1
-    for k in range(n_design):
-        j = nbr2[s, k]
-        if blob_of[j] >= 0:
-            slots[m] = j
-            blobs[m] = blob_of[j]
-            m += 1
+    m = _gather(s, nbr2, 0, n_design, blob_of, slots, blobs, 1)
     n_imm = m - 1
     if n_imm < LOCAL_ONLY:
         # the second shell completes the neighbourhood fitted where few immediate neighbours are
         # identified; with LOCAL_ONLY or more, only the closed immediate neighbourhood is fitted,
         # where a strongly curved press is still affine
-        for k in range(n_design, K):
-            j = nbr2[s, k]
-            if j < 0:
-                break
-            if blob_of[j] >= 0:
-                slots[m] = j
-                blobs[m] = blob_of[j]
-                m += 1
+        m = _gather(s, nbr2, n_design, K, blob_of, slots, blobs, m)
     if m < 4 or n_imm < MIN_IMMEDIATE:
         return R_FEW
     ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]

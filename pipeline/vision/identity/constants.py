@@ -30,6 +30,9 @@ ANCHOR_EVIDENCE = 2
 MAX_STRETCH = 2.0
 #: Margin kept from half the pattern's symmetry angle.
 ROTATION_MARGIN_DEG = 7.5
+#: Radius (design separations) of a slot's immediate design neighbours: a hexagonal lattice's first
+#: shell (1) and a square lattice's diagonals (1.41), not the second shell (1.73 hexagonal, 2 square).
+IMMEDIATE_PITCHES = 1.5
 #: Radius (design separations) of the neighbourhood a local affine map is fitted to: two shells,
 #: so that a slot on the convex edge of an identified patch (two immediate neighbours) still has a
 #: fit, while the map stays local (a press changes the skin's local scale over several separations).
@@ -67,8 +70,30 @@ FAN_MAX_STRETCH = 3.0
 #: A slot has a closed fan only if its design neighbours leave no angular gap wider than this about
 #: it (hexagonal 60, square 45 deg inside the pattern; an outer-ring slot leaves >= 180 deg).
 FAN_MAX_GAP_DEG = 135.0
+#: A fan's neighbours are degenerate (no affine map through them) when the determinant of their
+#: design scatter is below this x pitch^4 (a rounding-level floor: a real fan's is ~pitch^4).
+FAN_DEGENERATE = 1e-12
 #: Nearest blobs examined for the emptiness of a fan (a hexagonal fan has 6 vertices).
 FAN_QUERY = 24
+#: The centre test of a circular pattern needs, in each of its first three rings, the blobs of at
+#: least this fraction of the ring's slots ...
+RING_COVERAGE = 2.0 / 3.0
+#: ... and at least this many (an affine fit to fewer says nothing about roundness).
+RING_MIN_MARKERS = 4
+#: ... and the three rings' affine maps proportional to within this fraction (a press changes each
+#: ring's radius; a camera's perspective is common to all three).
+RING_SHAPE = 0.25
+#: Design scale (mm) passed to the ring fits in place of the pitch: it switches the collinearity
+#: limit of the fits off (a ring is never collinear), so only too few points make a fit unusable.
+RING_FIT_NO_COLLINEARITY_MM = 1e-9
+#: Design-lattice construction (fractions of the design separation): a rotation or shift maps a slot
+#: onto a slot when it lands within SLOT_MATCH_SYMMETRY (symmetry test, exact up to rounding) or
+#: SLOT_MATCH_SHIFT (alternative readings); a lattice step is a centre neighbour within LATTICE_STEP;
+#: a site beyond the outer ring is one with no slot within BEYOND_EMPTY.
+SLOT_MATCH_SYMMETRY = 0.1
+SLOT_MATCH_SHIFT = 0.25
+LATTICE_STEP = 1.1
+BEYOND_EMPTY = 0.5
 #: Smallest patch that is reported (a patch needs neighbourhoods of three to be tested at all).
 MIN_PATCH = 4
 

@@ -7,7 +7,7 @@ import math
 
 import numba
 
-from pipeline.vision.identity.constants import _NEED_TREE, FAN_MAX_GAP_DEG, FAN_MAX_STRETCH
+from pipeline.vision.identity.constants import _NEED_TREE, FAN_DEGENERATE, FAN_MAX_GAP_DEG, FAN_MAX_STRETCH
 from pipeline.vision.kdtree import kd_query
 
 
@@ -109,7 +109,7 @@ def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, clo
     cvx = svx - m * mv * mx
     cvy = svy - m * mv * my
     det = sxx * syy - sxy * sxy
-    if not det > 1e-12 * pitch ** 4:
+    if not det > FAN_DEGENERATE * pitch ** 4:
         return 0
     l00 = (cux * syy - cuy * sxy) / det
     l01 = (cuy * sxx - cux * sxy) / det

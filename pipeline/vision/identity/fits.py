@@ -39,6 +39,90 @@ def _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc):
     return acc
 
 
+@numba.njit(inline="always")
+def _row_length(table, s):
+    """Entries of ``table[s]`` before its -1 padding (a neighbour table of :class:`Lattice`)."""
+    n = 0
+    for k in range(table.shape[1]):
+        if table[s, k] < 0:
+            break
+        n += 1
+    return n
+
+
+@numba.njit(inline="always")
+def _gather(s, table, k0, k1, blob_of, slots, blobs, m):
+    """Append the identified design neighbours among ``table[s, k0:k1]`` (up to the -1 padding) to
+    ``slots``, and their blobs to ``blobs``, from position ``m``; returns the new count."""
+    for k in range(k0, k1):
+        j = table[s, k]
+        if j < 0:
+            break
+        if blob_of[j] >= 0:
+            slots[m] = j
+            blobs[m] = blob_of[j]
+            m += 1
+    return m
+
+
+
+#: A fit needs three points (the point count is a float sum of ones, hence the half).
+FIT_MIN_POINTS = 2.5
+#: Smallest eigenvalue of a fit's design scatter (the sum over its points of the squared offsets from
+#: their mean, along the direction of least spread), in squared design separations: below it the
+#: points are (nearly) collinear and the map across them is undetermined.
+COLLINEAR_SCATTER = 0.1
+
+
+@numba.njit(inline="always")
+def _design_half(c0, c1, c2, c5, c6, c7, pitch):
+    """The design half of a least-squares affine map from the design sums of :func:`_fit_sums`
+    (count, x, y, xx, xy, yy): (usable, mean x, mean y, inverse scatter 00, 01, 11). Not usable with
+    fewer than three points or (nearly) collinear ones (:data:`COLLINEAR_SCATTER`)."""
+    cnt = c0
+    if cnt < FIT_MIN_POINTS:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    mx, my = c1 / cnt, c2 / cnt
+    sxx = c5 - cnt * mx * mx
+    sxy = c6 - cnt * mx * my
+    syy = c7 - cnt * my * my
+    det = sxx * syy - sxy * sxy
+    tr = sxx + syy
+    lam_min = tr / 2 - math.sqrt(max(tr * tr / 4 - det, 0.0))
+    if lam_min < COLLINEAR_SCATTER * pitch * pitch:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0
+    return True, mx, my, syy / det, -sxy / det, sxx / det
+
+
+@numba.njit(inline="always")
+def _image_half(cnt, mx, my, c3, c4, c8, c9, c10, c11, i00, i01, i11):
+    """The image half of the map: (mean u, mean v, L00, L01, L10, L11) from the image sums of
+    :func:`_fit_sums` (u, v, ux, uy, vx, vy) and the design half of :func:`_design_half`."""
+    mu, mv = c3 / cnt, c4 / cnt
+    cux = c8 - cnt * mu * mx
+    cuy = c9 - cnt * mu * my
+    cvx = c10 - cnt * mv * mx
+    cvy = c11 - cnt * mv * my
+    l00 = cux * i00 + cuy * i01
+    l01 = cux * i01 + cuy * i11
+    l10 = cvx * i00 + cvy * i01
+    l11 = cvx * i01 + cvy * i11
+    return mu, mv, l00, l01, l10, l11
+
+
+@numba.njit(inline="always")
+def _smooth(l00, l01, l10, l11, max_stretch):
+    """Can a smooth skin map this way: orientation kept (no mirror) and the larger singular value at
+    most ``max_stretch`` times the smaller?"""
+    dl = l00 * l11 - l01 * l10
+    if dl <= 0.0:
+        return False
+    fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
+    s_max = math.sqrt(max(fro / 2 + math.sqrt(max(fro * fro / 4 - dl * dl, 0.0)), 0.0))
+    s_min = dl / s_max
+    return not s_max > max_stretch * s_min
+
+
 @numba.njit(cache=True)
 def _fit(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch):
     """:func:`_fit_map` with the stretch limit :data:`MAX_STRETCH`."""
@@ -74,34 +158,11 @@ def _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, max_stretc
         c9 -= u * y
         c10 -= v * x
         c11 -= v * y
-    cnt = c0
-    if cnt < 2.5:
+    usable, mx, my, i00, i01, i11 = _design_half(c0, c1, c2, c5, c6, c7, pitch)
+    if not usable:
         return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    mx, my, mu, mv = c1 / cnt, c2 / cnt, c3 / cnt, c4 / cnt
-    sxx = c5 - cnt * mx * mx
-    sxy = c6 - cnt * mx * my
-    syy = c7 - cnt * my * my
-    cux = c8 - cnt * mu * mx
-    cuy = c9 - cnt * mu * my
-    cvx = c10 - cnt * mv * mx
-    cvy = c11 - cnt * mv * my
-    det = sxx * syy - sxy * sxy
-    tr = sxx + syy
-    lam_min = tr / 2 - math.sqrt(max(tr * tr / 4 - det, 0.0))
-    if lam_min < 0.1 * pitch * pitch:
-        return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    i00, i01, i11 = syy / det, -sxy / det, sxx / det
-    l00 = cux * i00 + cuy * i01
-    l01 = cux * i01 + cuy * i11
-    l10 = cvx * i00 + cvy * i01
-    l11 = cvx * i01 + cvy * i11
-    dl = l00 * l11 - l01 * l10
-    if dl <= 0.0:
-        return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
-    s_max = math.sqrt(max(fro / 2 + math.sqrt(max(fro * fro / 4 - dl * dl, 0.0)), 0.0))
-    s_min = dl / s_max
-    if s_max > max_stretch * s_min:
+    mu, mv, l00, l01, l10, l11 = _image_half(c0, mx, my, c3, c4, c8, c9, c10, c11, i00, i01, i11)
+    if not _smooth(l00, l01, l10, l11, max_stretch):
         return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     return 1, mx, my, mu, mv, l00, l01, l10, l11
 
@@ -114,7 +175,7 @@ def _loo_design(xy, nbr, nbr2, pitch):
     point q (0 = the slot, then its immediate neighbours): usable (1.0, else 0.0: too few or
     collinear points), the point count, the design means, the inverse of the design scatter (00, 01,
     11) and the left-out point's design offset from the mean. Computed by the very operations of
-    :func:`_fit_sums` and :func:`_fit_map`, so a fit that takes them is bit for bit the full one."""
+    :func:`_fit_sums` and :func:`_design_half`, so a fit that takes them is bit for bit the full one."""
     N = len(xy)
     K = nbr2.shape[1]
     K1 = nbr.shape[1]
@@ -122,11 +183,7 @@ def _loo_design(xy, nbr, nbr2, pitch):
     tab = np.zeros((N, K1 + 1, 9))
     slots = np.empty(K + 1, np.int64)
     for s in range(N):
-        n_design = 0
-        for k1 in range(K1):
-            if nbr[s, k1] < 0:
-                break
-            n_design += 1
+        n_design = _row_length(nbr, s)
         slots[0] = s
         m = 1
         for k in range(K):
@@ -156,22 +213,13 @@ def _loo_design(xy, nbr, nbr2, pitch):
             c5 = a5 - x * x
             c6 = a6 - x * y
             c7 = a7 - y * y
-            cnt = c0
-            tab[s, q, 1] = cnt
-            if cnt < 2.5:
-                continue
-            mx, my = c1 / cnt, c2 / cnt
-            sxx = c5 - cnt * mx * mx
-            sxy = c6 - cnt * mx * my
-            syy = c7 - cnt * my * my
-            det = sxx * syy - sxy * sxy
-            tr = sxx + syy
-            lam_min = tr / 2 - math.sqrt(max(tr * tr / 4 - det, 0.0))
-            if lam_min < 0.1 * pitch * pitch:
+            tab[s, q, 1] = c0
+            usable, mx, my, i00, i01, i11 = _design_half(c0, c1, c2, c5, c6, c7, pitch)
+            if not usable:
                 continue
             tab[s, q, 0] = 1.0
             tab[s, q, 2], tab[s, q, 3] = mx, my
-            tab[s, q, 4], tab[s, q, 5], tab[s, q, 6] = syy / det, -sxy / det, sxx / det
+            tab[s, q, 4], tab[s, q, 5], tab[s, q, 6] = i00, i01, i11
             tab[s, q, 7] = xy[slots[q], 0] - ox - mx
             tab[s, q, 8] = xy[slots[q], 1] - oy - my
     return m_of, tab
@@ -180,36 +228,16 @@ def _loo_design(xy, nbr, nbr2, pitch):
 @numba.njit(cache=True)
 def _fit_tab(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, row):
     """:func:`_fit` (point ``skip`` left out) with its design half taken from a row of the table of
-    :func:`_loo_design`; the image half is the same sequence of operations as :func:`_fit_map`'s."""
+    :func:`_loo_design`; the image half is :func:`_fit_map`'s (:func:`_image_half`)."""
     if row[0] == 0.0:
         return 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     x = xy[slots[skip], 0] - ox
     y = xy[slots[skip], 1] - oy
     u = pts[blobs[skip], 0] - ou
     v = pts[blobs[skip], 1] - ov
-    c3 = acc[3] - u
-    c4 = acc[4] - v
-    c8 = acc[8] - u * x
-    c9 = acc[9] - u * y
-    c10 = acc[10] - v * x
-    c11 = acc[11] - v * y
     cnt, mx, my = row[1], row[2], row[3]
-    mu, mv = c3 / cnt, c4 / cnt
-    cux = c8 - cnt * mu * mx
-    cuy = c9 - cnt * mu * my
-    cvx = c10 - cnt * mv * mx
-    cvy = c11 - cnt * mv * my
-    i00, i01, i11 = row[4], row[5], row[6]
-    l00 = cux * i00 + cuy * i01
-    l01 = cux * i01 + cuy * i11
-    l10 = cvx * i00 + cvy * i01
-    l11 = cvx * i01 + cvy * i11
-    dl = l00 * l11 - l01 * l10
-    if dl <= 0.0:
-        return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    fro = l00 * l00 + l01 * l01 + l10 * l10 + l11 * l11
-    s_max = math.sqrt(max(fro / 2 + math.sqrt(max(fro * fro / 4 - dl * dl, 0.0)), 0.0))
-    s_min = dl / s_max
-    if s_max > MAX_STRETCH * s_min:
+    mu, mv, l00, l01, l10, l11 = _image_half(cnt, mx, my, acc[3] - u, acc[4] - v, acc[8] - u * x, acc[9] - u * y,
+                                             acc[10] - v * x, acc[11] - v * y, row[4], row[5], row[6])
+    if not _smooth(l00, l01, l10, l11, MAX_STRETCH):
         return -1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     return 1, mx, my, mu, mv, l00, l01, l10, l11

@@ -11,8 +11,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.consistency import _blob_of, _consistency
-from pipeline.vision.identity.constants import (FAN_MAX_GAP_DEG, GATE, MIN_PATCH, NEIGHBOURHOOD_PITCHES, R_INCONSISTENT,
-                                                ROTATION_MARGIN_DEG)
+from pipeline.vision.identity.constants import (BEYOND_EMPTY, FAN_MAX_GAP_DEG, GATE, IMMEDIATE_PITCHES, LATTICE_STEP,
+                                                MIN_PATCH, NEIGHBOURHOOD_PITCHES, R_INCONSISTENT, ROTATION_MARGIN_DEG,
+                                                SLOT_MATCH_SHIFT, SLOT_MATCH_SYMMETRY)
 from pipeline.vision.identity.fans import _fan_turns_once
 from pipeline.vision.identity.fits import _loo_design
 from pipeline.vision.kdtree import kd_build
@@ -78,7 +79,7 @@ def lattice_of(design) -> Lattice:
             t[i, :len(others)] = others
         return t
 
-    nbr, nbr2 = table(1.5), table(NEIGHBOURHOOD_PITCHES)
+    nbr, nbr2 = table(IMMEDIATE_PITCHES), table(NEIGHBOURHOOD_PITCHES)
     # both tables are sorted by distance, so each slot's immediate neighbours open its wider
     # neighbourhood (the leave-one-out test gathers them in one pass relying on it)
     n_imm = np.count_nonzero(nbr >= 0, axis=1)
@@ -91,7 +92,7 @@ def lattice_of(design) -> Lattice:
         t = 2 * math.pi / fold
         R = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
         dd, _ = tree.query((xy - c) @ R.T + c)
-        if np.all(dd < 0.1 * pitch):
+        if np.all(dd < SLOT_MATCH_SYMMETRY * pitch):
             alpha = 360.0 / fold
             break
     # alternatives: every lattice translation that keeps some slots on slots, and ring twists
@@ -102,7 +103,7 @@ def lattice_of(design) -> Lattice:
             continue
         t = xy[s] - xy[centre]
         dd, jj = tree.query(xy + t)
-        m = np.where(dd < 0.25 * pitch, jj, -1)
+        m = np.where(dd < SLOT_MATCH_SHIFT * pitch, jj, -1)
         if np.count_nonzero(m >= 0) >= MIN_PATCH:
             maps.append(m)
             names.append(f"shifted by ({t[0]:+.2f}, {t[1]:+.2f}) mm")
@@ -139,12 +140,12 @@ def lattice_of(design) -> Lattice:
     if lattice:
         centre_nb = nbr[centre][nbr[centre] >= 0]
         steps = xy[centre_nb] - xy[centre]
-        steps = steps[np.hypot(*steps.T) <= 1.1 * pitch]
+        steps = steps[np.hypot(*steps.T) <= LATTICE_STEP * pitch]
         outer = np.flatnonzero(layers == layers.max())
         for s_ in outer:
             for v in steps:
                 q = xy[s_] + v
-                if tree.query(q)[0] > 0.5 * pitch:
+                if tree.query(q)[0] > BEYOND_EMPTY * pitch:
                     v_slot.append(s_)
                     v_xy.append(q)
     v_slot = np.asarray(v_slot, np.int64)

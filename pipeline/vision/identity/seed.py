@@ -12,6 +12,19 @@ from scipy.spatial import cKDTree
 from pipeline.vision.identity.constants import SEED_RADIUS
 from pipeline.vision.identity.lattice import Lattice
 
+#: The placements are scored on a distance map of the blobs rasterised at this many raster pixels per
+#: separation ...
+SEED_RASTER_PX = 12.0
+#: ... a projected slot counts as landing on a blob within this many separations of one ...
+SEED_HIT = 0.3
+#: ... and a raster larger than this many cells (a blob set spread far beyond any pattern) is not
+#: scored at all.
+SEED_RASTER_MAX_CELLS = 4_000_000
+#: The first ring about a candidate centre of a circular pattern: blobs between these distances
+#: (separations) from it.
+SEED_RING1_INNER = 0.7
+SEED_RING1_OUTER = 1.3
+
 
 def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n_best: int = 8) -> list:
     """A proposal independent of ring peeling: the similarity transform (scale from the median
@@ -49,11 +62,11 @@ def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n
     c_des = lat.xy.mean(axis=0)
     s_idx = np.argsort(np.hypot(*(lat.xy - c_des).T), kind="stable")[:19]
     # score by a distance map of the blobs (one lookup per projected slot)
-    scale_map = 12.0 / pitch_px  # 12 raster pixels per separation
+    scale_map = SEED_RASTER_PX / pitch_px
     lo = pts.min(axis=0) - 2 * pitch_px
     hi = pts.max(axis=0) + 2 * pitch_px
     shape = (int((hi[1] - lo[1]) * scale_map) + 2, int((hi[0] - lo[0]) * scale_map) + 2)
-    if shape[0] * shape[1] > 4_000_000:
+    if shape[0] * shape[1] > SEED_RASTER_MAX_CELLS:
         return out
 
     raster = np.full(shape, 255, np.uint8)
@@ -84,12 +97,12 @@ def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n
         apex = np.array(apex)
         apex = apex[tree.query(apex)[0] > 0.5 * pitch_px]
         anchor_px = np.vstack([pts[b_idx], apex])
-        ring1 = tree.query_ball_point(anchor_px, 1.3 * pitch_px)
+        ring1 = tree.query_ball_point(anchor_px, SEED_RING1_OUTER * pitch_px)
         th = np.zeros(len(anchor_px))
         scale_h = np.full(len(anchor_px), s0)
         rad_des = float(np.mean(np.hypot(*(lat.xy[lat.layer_of == 1] - lat.xy[centre]).T)))
         for i, lst in enumerate(ring1):
-            v = pts[[j for j in lst if np.hypot(*(pts[j] - anchor_px[i])) > 0.7 * pitch_px]] - anchor_px[i]
+            v = pts[[j for j in lst if np.hypot(*(pts[j] - anchor_px[i])) > SEED_RING1_INNER * pitch_px]] - anchor_px[i]
             if len(v):
                 th[i] = np.degrees(np.angle(np.exp(1j * fold * np.arctan2(v[:, 1], v[:, 0])).mean())) / fold
                 # the first ring's radius: a press bulges the centre, the median spacing misses it
@@ -127,7 +140,7 @@ def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n
         # separations of the centre: its rings fit a similarity only near the centre when the
         # skin bulges)
         near = np.hypot(*(lat.xy[None, :, :] - lat.xy[SS][:, None, :]).transpose(2, 0, 1)) <= SEED_RADIUS * lat.pitch
-        hit = dd <= 0.3 * 12.0
+        hit = dd <= SEED_HIT * SEED_RASTER_PX
         if not lat.translation_lattice:
             hit &= near
         score = np.count_nonzero(hit, axis=1)
