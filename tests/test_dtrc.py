@@ -208,7 +208,7 @@ def test_mesh_boundary_from_neighbour_table_matches_edge_counting():
     from the mesh edges must equal a k-d tree's."""
     from scipy.spatial import cKDTree
 
-    from pipeline.vision.dtrc import _Mesh, _nn_and_mesh
+    from pipeline.vision.dtrc.mesh import _Mesh, _nn_and_mesh
 
     rng = np.random.default_rng(21)
     pts = _view(load_design("circular217_dome"), rng, bulge=0.1)
@@ -230,7 +230,7 @@ def test_mesh_boundary_from_neighbour_table_matches_edge_counting():
 
 def _peel_reference(pts, active, n_rings, med_edge):
     """The numpy definition of peeling (on :class:`_Mesh`) that the compiled kernel implements."""
-    from pipeline.vision.dtrc import _Mesh
+    from pipeline.vision.dtrc.mesh import _Mesh
 
     idx = np.nonzero(active)[0]
     n = len(pts)
@@ -272,7 +272,9 @@ def test_compiled_kernels_match_their_numpy_definitions():
     from scipy.spatial import Delaunay
 
     from pipeline.vision.delaunay import delaunay_certified
-    from pipeline.vision.dtrc import _peel, _shift_code, _triangulate
+    from pipeline.vision.dtrc.mesh import _triangulate
+    from pipeline.vision.dtrc.peel import _peel
+    from pipeline.vision.dtrc.ring_codes import _shift_code
 
     def canon(simp, nb):
         key = [tuple(sorted(t)) for t in simp.tolist()]
@@ -369,8 +371,8 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
     from scipy.spatial import cKDTree
 
     from pipeline.vision.kdtree import kd_build, kd_query
-    from pipeline.vision.dtrc import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
-                               _verify_and_grow)
+    from pipeline.vision.dtrc.prediction import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
+                                                 _verify_and_grow)
 
     rng = np.random.default_rng(7)
     names = ["hexagon127", "square121", "circular217_dome", "hexagon61_sep354"]

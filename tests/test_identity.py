@@ -238,8 +238,12 @@ def test_no_wrong_id_in_sharply_pressed_views_with_defects(seed, name, sigma, la
 def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
     """The fan test is topological: two neighbours' ids swapped fold the fans that contain them, and
     a blob inside a marker's fan (a spurious blob beside it) breaks its emptiness."""
-    from pipeline.vision.identity import _blob_of, _embedded, _tree, kd_build, use_triangulation
-    from pipeline.vision.dtrc import _nn_and_mesh
+    from pipeline.vision.dtrc.mesh import _nn_and_mesh
+    from pipeline.vision.identity import use_triangulation
+    from pipeline.vision.identity.consistency import _blob_of
+    from pipeline.vision.identity.fans import _embedded
+    from pipeline.vision.identity.neighbours import _adj
+    from pipeline.vision.kdtree import kd_build
 
     name = "hexagon127"
     lat = lattice_of(DESIGNS[name])
@@ -249,7 +253,6 @@ def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
 
     def intact(pts, labels, b):
         use_triangulation(pts, _nn_and_mesh(pts)[1][0])
-        from pipeline.vision.identity import _adj
         adj = _adj(pts)
         ring = np.empty(lat.fan.shape[1], np.int64)
         near = np.empty(24, np.int64)
@@ -297,7 +300,9 @@ def test_tabulated_leave_one_out_fits_are_the_full_fits(name):
     bit, so that no status depends on which path computed it: on a pressed, noisy view (complete,
     with two neighbours swapped, with 10 % of the blobs removed), every blob's status is the same
     with and without the table, and every tabulated fit returns exactly the full fit's numbers."""
-    from pipeline.vision.identity import GATE, _blob_of, _consistency, _fit, _fit_sums, _fit_tab
+    from pipeline.vision.identity import GATE
+    from pipeline.vision.identity.consistency import _blob_of, _consistency
+    from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab
     from pipeline.vision.kdtree import kd_build
 
     design = DESIGNS[name]

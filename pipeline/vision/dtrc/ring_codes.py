@@ -1,0 +1,212 @@
+"""DTRC step 3 for complete, regular rings: the design rings, and the cyclic shift rotating a found
+ring onto its design ring by angle, carried outward from the centre."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from pipeline.design import SensorDesign
+from pipeline.vision.dtrc.mesh import _median
+
+
+#: one missing marker doubles a gap, a spurious one halves it.
+RING_GAP_TOL = 1.5
+
+
+# ----- design rings -------------------------------------------------------------------------
+
+_DESIGN_CACHE: dict[tuple, tuple] = {}
+
+
+def _design_rings(design: SensorDesign):
+    """Per layer k (0 = centre): (ids (n_k,), design xy (n_k, 2), angles about the ring centroid)."""
+    key = (design.pattern.kind, design.pattern.layers, design.pattern.separation_mm)
+    if key not in _DESIGN_CACHE:
+        xy = design.rest_markers_mm()[:, :2]
+        layers = design.marker_layers()
+        rings = []
+        for k in range(design.pattern.layers):
+            ids = np.nonzero(layers == k)[0]
+            p = xy[ids]
+            c = p.mean(axis=0)
+            rings.append((ids, p, np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0])))
+        _DESIGN_CACHE[key] = (xy, rings)
+    return _DESIGN_CACHE[key]
+
+
+def _marker_count(design: SensorDesign) -> int:
+    """``design.marker_count`` from the cached rest layout (the property recomputes the layout)."""
+    return len(_design_rings(design)[0])
+
+
+_FLAT_CACHE: dict[tuple, tuple] = {}
+
+
+def _design_flat(design: SensorDesign):
+    """The design rings of :func:`_design_rings` flattened for the compiled coder: ids (M,), angles
+    (M,), layer offsets (layers + 1,) and each layer's gap scale (:func:`_design_gap_scale`; 1 for the
+    centre, whose gaps are never checked)."""
+    key = (design.pattern.kind, design.pattern.layers, design.pattern.separation_mm)
+    if key not in _FLAT_CACHE:
+        _, rings = _design_rings(design)
+        off = np.zeros(len(rings) + 1, np.intp)
+        off[1:] = np.cumsum([len(ids) for ids, _, _ in rings])
+        gap = np.array([1.0] + [_design_gap_scale(p) for _, p, _ in rings[1:]])
+        _FLAT_CACHE[key] = (np.concatenate([ids for ids, _, _ in rings]).astype(np.int64),
+                            np.concatenate([a for _, _, a in rings]).astype(np.float64), off, gap)
+    return _FLAT_CACHE[key]
+
+
+# ----- small compiled helpers ---------------------------------------------------------------
+# The point sets are small (~100-300 blobs), so per-call numpy overhead dominated the stage; the loops
+# below run compiled (numba, nopython). Where the order of floating-point operations is observable
+# (sums, products) they follow the numpy definitions they replace.
+
+_TWO_PI = 2 * math.pi
+
+
+@numba.njit(cache=True)
+def _wrap_scalar(a: float) -> float:
+    """``(a + pi) % (2 pi) - pi`` bit for bit (numpy's floored modulo), without a modulo in the common
+    case (|a + pi| < 2 pi, where the modulo is exact)."""
+    x = a + math.pi
+    if 0.0 <= x < _TWO_PI:
+        r = x
+    elif -_TWO_PI < x < 0.0:
+        r = x + _TWO_PI
+    else:
+        r = x % _TWO_PI  # Python's float modulo: fmod, then moved into [0, 2 pi) like numpy's
+    return r - math.pi
+
+
+# ----- coding -------------------------------------------------------------------------------
+
+def _cyclic_gaps(xy: np.ndarray) -> np.ndarray:
+    d = np.diff(xy, axis=0, append=xy[:1])  # xy[i + 1] - xy[i], cyclic
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+
+
+def _design_gap_scale(design_xy: np.ndarray) -> float:
+    """Mean design gap of a ring over its median gap."""
+    gd = _cyclic_gaps(design_xy)
+    return float((gd / _median(gd)).mean())
+
+
+@numba.njit(cache=True)
+def _gaps_regular(pts, members, gap_scale):
+    """Consecutive gaps of a ring (``members`` in angular order, cyclic) agree with the design's, whose
+    mean gap over median gap is ``gap_scale``."""
+    m = len(members)
+    if m < 3:
+        return True
+    gf = np.empty(m)
+    for i in range(m):
+        a, b = members[i], members[(i + 1) % m]
+        dx, dy = pts[b, 0] - pts[a, 0], pts[b, 1] - pts[a, 1]
+        gf[i] = math.sqrt(dx * dx + dy * dy)
+    med = _median(gf)
+    for i in range(m):
+        ratio = gf[i] / med / gap_scale
+        if not (ratio < RING_GAP_TOL and ratio > 1 / RING_GAP_TOL):
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _ring_by_angle(pts, members):
+    """Ring members sorted CCW by atan2 about their centroid, and those angles."""
+    m = len(members)
+    cx = 0.0
+    cy = 0.0
+    for i in members:
+        cx += pts[i, 0]
+        cy += pts[i, 1]
+    cx /= m
+    cy /= m
+    phi = np.empty(m)
+    for j in range(m):
+        phi[j] = math.atan2(pts[members[j], 1] - cy, pts[members[j], 0] - cx)
+    o = np.argsort(phi, kind="mergesort")
+    return members[o], phi[o]
+
+
+@numba.njit(cache=True)
+def _shift_code(phi, psi, theta):
+    """Best cyclic shift aligning found angles ``phi`` (sorted CCW) to design ``psi`` (canonical order).
+
+    Returns (shift, new rotation estimate, max |residual - mean|). Found point ``(i + shift) % n``
+    is design slot ``i``. For shift s the residuals are ``r_i = wrap(phi[(i + s) % n] - psi[i] - theta)``,
+    their circular mean ``m_s``, and the cost ``sum_i wrap(r_i - m_s)^2 + n m_s^2``; the least cost
+    wins (a shift is abandoned once its partial cost reaches the best so far).
+    """
+    n = len(psi)
+    cphi, sphi = np.cos(phi), np.sin(phi)
+    cpsi, spsi = np.cos(psi), np.sin(psi)
+    ct, st = math.cos(theta), math.sin(theta)
+    best, best_cost, best_m = 0, np.inf, 0.0
+    for s in range(n):
+        # circular mean: sum_i exp(i (phi_(i+s) - psi_i)) exp(-i theta)
+        zr = 0.0
+        zi = 0.0
+        for i in range(n):
+            j = (i + s) % n
+            zr += cphi[j] * cpsi[i] + sphi[j] * spsi[i]
+            zi += sphi[j] * cpsi[i] - cphi[j] * spsi[i]
+        m = math.atan2((zi * ct - zr * st) / n, (zr * ct + zi * st) / n)
+        cost = n * m * m
+        for i in range(n):
+            dev = _wrap_scalar(_wrap_scalar(phi[(i + s) % n] - psi[i] - theta) - m)
+            cost += dev * dev
+            if cost >= best_cost:
+                break
+        if cost < best_cost:
+            best, best_cost, best_m = s, cost, m
+    spread = 0.0
+    for i in range(n):
+        spread = max(spread, abs(_wrap_scalar(_wrap_scalar(phi[(i + best) % n] - psi[i] - theta) - best_m)))
+    return best, theta + best_m, spread
+
+
+@numba.njit(cache=True)
+def _code_by_angles(pts, ring_flat, ring_off, layer, theta, ids, d_ids, d_ang, d_off, d_gap):
+    """Code layers ``layer, layer + 1, ...`` (peel ``n_layers - 1 - layer``) into ``ids`` while each
+    ring has the design's size and regular gaps and its best shift fits (spread < half the ring's
+    pitch angle), carrying the rotation ``theta`` outward.
+
+    Returns (the first layer not coded this way, ``n_layers`` when all were; theta so far).
+    """
+    n_layers = len(d_off) - 1
+    n_rings = len(ring_off) - 1
+    while layer < n_layers:
+        lo, hi = d_off[layer], d_off[layer + 1]
+        r = n_layers - 1 - layer
+        if r >= n_rings or ring_off[r + 1] - ring_off[r] != hi - lo:
+            break
+        members = ring_flat[ring_off[r]:ring_off[r + 1]]
+        if layer == 0:
+            ids[members[0]] = d_ids[lo]
+        else:
+            members, phi = _ring_by_angle(pts, members)
+            if not _gaps_regular(pts, members, d_gap[layer]):
+                break
+            shift, theta_new, spread = _shift_code(phi, d_ang[lo:hi], theta)
+            if not spread < math.pi / (hi - lo):
+                break
+            for i in range(hi - lo):
+                ids[members[(i + shift) % (hi - lo)]] = d_ids[lo + i]
+            theta = theta_new
+        layer += 1
+    return layer, theta
+
+
+@numba.njit(cache=True)
+def _unmatched(ids, n_markers):
+    """Design ids (ascending) not among ``ids``."""
+    present = np.zeros(n_markers, np.bool_)
+    for i in ids:
+        if i >= 0:
+            present[i] = True
+    return np.flatnonzero(~present).astype(np.int64)

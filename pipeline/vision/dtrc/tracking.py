@@ -1,0 +1,152 @@
+"""Stereo matching and tracking by DTRC codes: identity is the code, so every frame is re-coded;
+the previous frame's certain markers only propose ids. :class:`NearestNeighbourTracker` is the
+paper's KNN baseline."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.design import SensorDesign
+from pipeline.types import Blobs, MarkerMatches
+from pipeline.vision.dtrc.coding import RingCoding, code_rings
+from pipeline.vision.dtrc.ring_codes import _marker_count
+
+
+# ----- stereo matching and tracking ---------------------------------------------------------
+
+@numba.njit(cache=True)
+def _pair_indices(left_ids, right_ids, n_markers):
+    """Ids coded in both views (ascending), their blob index in each view, and the other ids."""
+    li = np.full(n_markers, -1, np.int64)
+    ri = np.full(n_markers, -1, np.int64)
+    for k in range(len(left_ids)):
+        if left_ids[k] >= 0:
+            li[left_ids[k]] = k
+    for k in range(len(right_ids)):
+        if right_ids[k] >= 0:
+            ri[right_ids[k]] = k
+    both = (li >= 0) & (ri >= 0)
+    mid = np.flatnonzero(both).astype(np.int64)
+    return mid, li[mid], ri[mid], np.flatnonzero(~both).astype(np.int64)
+
+
+def _pair(left: Blobs, right: Blobs, lc: RingCoding, rc: RingCoding, n_markers: int) -> MarkerMatches:
+    mid, li, ri, unmatched = _pair_indices(lc.ids, rc.ids, n_markers)
+    return MarkerMatches(ids=mid, left_px=left.xy_px[li], right_px=right.xy_px[ri], unmatched_ids=unmatched)
+
+
+def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatches:
+    """Match markers between the left and right views by their DTRC codes.
+
+    Parameters
+    ----------
+    left, right : Blobs
+        Marker centres in each half image (right coordinates relative to the right half).
+    design : SensorDesign
+
+    Returns
+    -------
+    MarkerMatches
+        Ids coded in both views (ascending), their pixel centres, and ``unmatched_ids``: design ids
+        not coded in at least one view.
+    """
+    return _pair(left, right, code_rings(left, design), code_rings(right, design), _marker_count(design))
+
+
+class DTRCTracker:
+    """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
+    previous frame's identified markers propose ids where coding alone cannot (crowding, large
+    deformation, partial occlusion), under the same certainty rule.
+
+    ``update(left, right) -> MarkerMatches`` (also callable). ``last_codings`` holds the two
+    :class:`RingCoding` of the latest frame.
+    """
+
+    def __init__(self, design: SensorDesign, *, temporal: bool = True) -> None:
+        self.design = design
+        self.temporal = temporal
+        self.last_codings: tuple[RingCoding, RingCoding] | None = None
+        self._previous: list | None = None
+
+    def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
+        prev = self._previous if self.temporal else None
+        lc = code_rings(left, self.design, previous=None if prev is None else prev[0])
+        rc = code_rings(right, self.design, previous=None if prev is None else prev[1])
+        self.last_codings = (lc, rc)
+        self._previous = [(b.xy_px[c.ids >= 0], c.ids[c.ids >= 0]) for b, c in ((left, lc), (right, rc))]
+        return _pair(left, right, lc, rc, _marker_count(self.design))
+
+    __call__ = update
+
+    def forget(self, ids: np.ndarray) -> None:
+        """Drop ``ids`` from the markers the next frame is given as certain in the previous one: a
+        pair of views whose rays do not meet (the runner's stereo check) is not one marker, so at
+        least one view's id is wrong and must not be carried on."""
+        if self._previous is None or len(ids) == 0:
+            return
+        self._previous = [(xy[~np.isin(i, ids)], i[~np.isin(i, ids)]) for xy, i in self._previous]
+
+    def reset(self) -> None:
+        self.last_codings = None
+        self._previous = None
+
+
+class NearestNeighbourTracker:
+    """The paper's KNN baseline: ids carried from the previous frame to the nearest blob.
+
+    The first frame (or after :meth:`reset`) is coded by DTRC. Afterwards each view independently
+    moves every id to the nearest current blob within ``gate_factor`` x the median marker pitch of
+    the first frame; when two ids claim one blob the closer keeps it, the other becomes unmatched.
+    """
+
+    def __init__(self, design: SensorDesign, *, gate_factor: float = 1.0) -> None:
+        self.design = design
+        self.gate_factor = float(gate_factor)
+        self._prev: list[dict[int, np.ndarray]] | None = None
+        self._gate = [math.inf, math.inf]
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def _carry(self, view: int, blobs: Blobs) -> dict[int, np.ndarray]:
+        prev = self._prev[view]
+        if not prev or len(blobs) == 0:
+            return {}
+        pid = np.fromiter(prev.keys(), np.int64)
+        ppx = np.asarray([prev[i] for i in pid])
+        d, j = cKDTree(blobs.xy_px).query(ppx)
+        ok = d <= self._gate[view]
+        out: dict[int, np.ndarray] = {}
+        best: dict[int, tuple[float, int]] = {}
+        for i, dd, jj, k in zip(pid, d, j, ok):
+            if k and (jj not in best or dd < best[jj][0]):
+                best[int(jj)] = (float(dd), int(i))
+        for jj, (_, i) in best.items():
+            out[i] = blobs.xy_px[jj]
+        return out
+
+    def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
+        n = self.design.marker_count
+        if self._prev is None:
+            lc, rc = code_rings(left, self.design), code_rings(right, self.design)
+            views = []
+            for v, (b, c) in enumerate(((left, lc), (right, rc))):
+                ok = c.ids >= 0
+                views.append({int(i): b.xy_px[k] for i, k in zip(c.ids[ok], np.nonzero(ok)[0])})
+                if len(b) >= 2:
+                    nn, _ = cKDTree(b.xy_px).query(b.xy_px, k=2)
+                    self._gate[v] = self.gate_factor * float(np.median(nn[:, 1]))
+        else:
+            views = [self._carry(0, left), self._carry(1, right)]
+        self._prev = views
+        common = sorted(set(views[0]) & set(views[1]))
+        ids = np.asarray(common, np.int64)
+        lp = np.asarray([views[0][i] for i in common]).reshape(-1, 2)
+        rp = np.asarray([views[1][i] for i in common]).reshape(-1, 2)
+        return MarkerMatches(ids, lp, rp, np.setdiff1d(np.arange(n, dtype=np.int64), ids))
+
+    __call__ = update

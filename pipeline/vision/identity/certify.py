@@ -1,0 +1,303 @@
+"""The certainty rule applied: :func:`certify` (consistency, anchoring, rotation), its one-pass
+:func:`certify_whole` for a complete proposal, :func:`grow` (free slots predicted from identified
+neighbours), :func:`follow` (markers carried from the previous frame) and :func:`contradicted`."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchored, _beyond_hits, _centre_holds,
+                                                _components, _rotation_deg)
+from pipeline.vision.identity.consistency import _blob_of, _consistency, consistent
+from pipeline.vision.identity.constants import (_NEED_TREE, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
+                                                FOLLOW_GATE, FOLLOW_NEIGHBOURS, GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS,
+                                                R_ANCHOR, R_FEW, R_NO_BLOB, R_OK, R_ROTATION)
+from pipeline.vision.identity.fits import _fit, _fit_sums, _gather
+from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
+from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
+from pipeline.vision.kdtree import kd_build
+
+
+@numba.njit(cache=True)
+def _predict_free(pts, blob_of, xy, nbr, pitch):
+    """Predicted image position and local pitch (px) of every free slot with a usable fit from its
+    identified neighbours; ``scale`` 0 where there is none."""
+    N = len(blob_of)
+    K = nbr.shape[1]
+    pred = np.zeros((N, 2))
+    scale = np.zeros(N)
+    slots = np.empty(K, np.int64)
+    blobs = np.empty(K, np.int64)
+    acc = np.empty(12)
+    for s in range(N):
+        if blob_of[s] >= 0:
+            continue
+        m = _gather(s, nbr, 0, K, blob_of, slots, blobs, 0)
+        if m < 3:
+            continue
+        ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[blobs[0], 0], pts[blobs[0], 1]
+        acc = _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc)
+        ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, -1, ox, oy, ou, ov, pitch)
+        if ok <= 0:
+            continue
+        pred[s, 0] = ou + mu - l00 * mx - l01 * my
+        pred[s, 1] = ov + mv - l10 * mx - l11 * my
+        scale[s] = math.sqrt(l00 * l11 - l01 * l10) * pitch
+    return pred, scale
+
+
+def certify_whole(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> bool:
+    """The common case in one compiled pass: every blob carries a proposed id, and every id of the
+    design is proposed (no defect at all). True when :func:`certify` would keep the whole proposal:
+    every marker consistent without a blob search (intact fans, :func:`_embedded`), the pattern
+    within the rotation limit, excluded from every alternative reading (and, for circular
+    patterns, centred). False means only "not decided here": :func:`certify` decides."""
+    N = len(lat.xy)
+    if len(pts) != N or len(slot_of) != N or N < MIN_PATCH:
+        return False
+    adj = _adj(pts)
+    if len(adj[1]) == 0:
+        return False
+    if not _whole_kernel(pts, _PLACEHOLDER_TREE, adj[0], adj[1], slot_of, lat.xy, lat.nbr, lat.nbr2, lat.loo_m,
+                         lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, rotation_limit_deg(lat), lat.alt,
+                         lat.alt_first, ANCHOR_EVIDENCE):
+        return False
+    members = np.arange(N, dtype=np.int64)
+    return lat.translation_lattice or _centre_holds(pts, slot_of, members, lat)
+
+
+@numba.njit(cache=True)
+def _whole_kernel(pts, tree, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed, pitch, gate, limit, alt,
+                  alt_first, evidence):
+    """:func:`certify_whole` without the circular patterns' centre test."""
+    n = len(slot_of)
+    blob_of = np.full(len(xy), -1, np.int64)
+    for b in range(n):
+        s = slot_of[b]
+        if s < 0 or blob_of[s] >= 0:
+            return False
+        blob_of[s] = b
+    order = np.arange(n)
+    has_tree = False
+    if fan[:, 0].max() < 0:
+        # no fans (circular patterns): every test searches
+        tree = kd_build(pts)
+        has_tree = True
+    st = _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
+                      pitch, gate, order, 0)
+    n_need = 0
+    for b in range(n):
+        if st[b] == _NEED_TREE:
+            n_need += 1
+        elif st[b] != 0:
+            return False
+    if n_need:
+        # the fans that are not exactly Delaunay stars need the blob search
+        tree = kd_build(pts)
+        has_tree = True
+        need = np.empty(n_need, np.int64)
+        k = 0
+        for b in range(n):
+            if st[b] == _NEED_TREE:
+                need[k] = b
+                k += 1
+        st = _consistency(pts, tree, True, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
+                          pitch, gate, need, 0)
+        for b in need:
+            if st[b] != 0:
+                return False
+    des = np.empty((n, 2))
+    for b in range(n):
+        des[b, 0] = xy[slot_of[b], 0]
+        des[b, 1] = xy[slot_of[b], 1]
+    if abs(_rotation_deg(pts, des)) > limit:
+        return False
+    if alt.shape[0] == 0:
+        return True
+    if _alternatives_excluded(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2, loo_m,
+                              loo_tab, fan, closed, pitch, gate, evidence):
+        return True
+    if has_tree:
+        return False
+    return _alternatives_excluded(pts, kd_build(pts), True, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2,
+                                  loo_m, loo_tab, fan, closed, pitch, gate, evidence)
+
+
+def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray | None = None):
+    """Apply the certainty rule to a proposal.
+
+    Parameters
+    ----------
+    pts : (n, 2) float64 blob centres (px)
+    slot_of : (n,) int64 proposed design id per blob (-1 none; ids unique)
+    lat : :class:`Lattice`
+    reason : (N,) int64, optional, updated in place with the reason code of every withdrawn id
+
+    Returns
+    -------
+    (n,) int64 certified ids (-1 where withdrawn).
+    """
+    N = len(lat.xy)
+    if reason is None:
+        reason = np.zeros(N, np.int64)
+    slot_of = consistent(pts, slot_of, lat, reason)
+    lab = np.flatnonzero(slot_of >= 0)
+    if len(lab) == 0:
+        return slot_of
+    blob_of = _blob_of(slot_of, N)
+    # patches: identified design neighbours (every such pair passed the consistency test)
+    comp_of = _components(slot_of, blob_of, lat.nbr)
+    comp = comp_of[lab]
+    n_comp = int(comp.max()) + 1
+    beyond = np.zeros(n_comp, np.int64)
+    if len(lat.beyond_slot) and len(lab) < len(slot_of):   # a hit is an unidentified blob
+        hits = _beyond_hits(pts, _tree(pts), slot_of, blob_of, lat.xy, lat.nbr2, lat.pitch, lat.beyond_slot,
+                            lat.beyond_xy, GROW_GATE)
+        # a real outer row continues along the ring: the longest run of consecutive outer-ring
+        # slots (cyclic, canonical order) with a blob beyond them, per patch
+        outer = lat.outer_ring
+        hit_slot = np.zeros(N, bool)
+        hit_slot[lat.beyond_slot[hits > 0]] = True
+        h = hit_slot[outer]
+        if h.any() and not h.all():
+            start = int(np.argmin(h))                     # a slot without a hit: runs do not wrap
+            h = np.roll(h, -start)
+            o = np.roll(outer, -start)
+            run = 0
+            for k in range(len(h)):
+                run = run + 1 if h[k] else 0
+                if run >= BEYOND_HITS:
+                    b = blob_of[o[k]]
+                    if b >= 0:
+                        beyond[comp_of[b]] = max(beyond[comp_of[b]], run)
+        elif h.all():
+            beyond[:] = len(h)
+    limit = rotation_limit_deg(lat)
+    for c in range(n_comp):
+        members = lab[comp == c]
+        code = R_OK
+        if len(members) < MIN_PATCH:
+            code = R_FEW
+        elif abs(_rotation_deg(np.ascontiguousarray(pts[members]), np.ascontiguousarray(lat.xy[slot_of[members]]))) > limit:
+            code = R_ROTATION
+        elif beyond[c] >= BEYOND_HITS:
+            code = R_ANCHOR
+        elif not _anchored(pts, slot_of, members, lat):
+            code = R_ANCHOR
+        if code != R_OK:
+            reason[slot_of[members]] = code
+            slot_of[members] = -1
+    return slot_of
+
+
+def contradicted(slot_of: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """Blobs whose id in ``slot_of`` a second certified reading ``other`` (same blobs) contradicts: it
+    gives the blob another id, or gives the blob's id to another blob. Two readings that both passed
+    the certainty rule yet disagree cannot both be right, and nothing in one frame says which is:
+    a row of markers lost at the edge of the view lets the row beside it be read one row over with
+    every neighbourhood still a smooth, moderately stretched map, while the same blobs followed from
+    the previous frame (motion a fraction of the spacing) keep their own ids. Returns a bool mask."""
+    a = slot_of >= 0
+    bad = a & (other >= 0) & (other != slot_of)
+    where_other = np.full(max(int(slot_of.max(initial=-1)), int(other.max(initial=-1))) + 1, -1, np.int64)
+    lab = np.flatnonzero(other >= 0)
+    where_other[other[lab]] = lab
+    mine = np.flatnonzero(a)
+    w = where_other[slot_of[mine]]
+    bad[mine[(w >= 0) & (w != mine)]] = True
+    return bad
+
+
+def follow(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, slot_of: np.ndarray, lat: Lattice,
+           max_rounds: int = 16) -> np.ndarray:
+    """Temporal certification: markers of the previous frame followed into this one.
+
+    A marker certain in the previous frame (``prev_xy`` (M, 2) px, ``prev_ids`` (M,)) but not
+    identified here is predicted at its previous position moved by the mean motion of at least
+    :data:`FOLLOW_NEIGHBOURS` of its design neighbours (within :data:`NEIGHBOURHOOD_PITCHES`)
+    identified in both frames. The nearest blob takes its id when it is within :data:`FOLLOW_GATE`
+    of its own nearest-neighbour distance from the prediction, at least twice as near as the
+    second-nearest blob, unidentified, and claimed by no other followed marker. Rounds repeat so
+    that followed markers carry their neighbours' motion on. Returns the ids with the followed
+    ones added. The skin moves smoothly between frames (a press, a slide), so where ring coding
+    and the local geometric tests cannot decide (crowding, strong deformation) the identity of
+    a marker is still fixed by where it was.
+    """
+    N = len(lat.xy)
+    out = slot_of.copy()
+    if len(pts) < 3 or len(prev_ids) == 0:
+        return out
+    P = np.full((N, 2), np.nan)
+    P[prev_ids] = prev_xy
+    tree = cKDTree(pts)
+    nn = tree.query(pts, k=2)[0][:, 1]
+    nb = lat.nbr2
+    valid_nb = nb >= 0
+    nb0 = np.where(valid_nb, nb, 0)
+    for _ in range(max_rounds):
+        C = np.full((N, 2), np.nan)
+        lab = np.flatnonzero(out >= 0)
+        C[out[lab]] = pts[lab]
+        moved = C - P                                         # NaN unless in both frames
+        ok_nb = valid_nb & np.isfinite(moved[nb0, 0])
+        cnt = ok_nb.sum(axis=1)
+        free = np.flatnonzero(np.isnan(C[:, 0]) & np.isfinite(P[:, 0]) & (cnt >= FOLLOW_NEIGHBOURS))
+        if len(free) == 0:
+            break
+        disp = np.where(ok_nb[free][..., None], moved[nb0[free]], 0.0).sum(axis=1) / cnt[free][:, None]
+        pred = P[free] + disp
+        d, j = tree.query(pred, k=2)
+        j1 = j[:, 0]
+        take = (d[:, 0] <= FOLLOW_GATE * nn[j1]) & (d[:, 1] >= 2 * d[:, 0]) & (out[j1] < 0)
+        u, c = np.unique(j1[take], return_counts=True)
+        take &= ~np.isin(j1, u[c > 1])
+        if not take.any():
+            break
+        out[j1[take]] = free[take]
+    return out
+
+
+def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, tree=None,
+         max_rounds: int = 64) -> np.ndarray:
+    """Extend certified patches slot by slot (see the module notes), re-testing after every round."""
+    N = len(lat.xy)
+    slot_of = slot_of.copy()
+    if len(pts) < 2:
+        return slot_of
+    tree = cKDTree(pts) if tree is None else tree
+    for _ in range(max_rounds):
+        blob_of = _blob_of(slot_of, N)
+        pred, scale = _predict_free(pts, blob_of, lat.xy, lat.nbr2, lat.pitch)
+        free = np.flatnonzero(scale > 0)
+        if len(free) == 0:
+            break
+        d, j = tree.query(pred[free], k=2)
+        d1, d2 = d[:, 0] / scale[free], d[:, 1] / scale[free]
+        near = d1 <= GROW_GATE
+        reason[free[~near]] = R_NO_BLOB
+        amb = near & ~((d2 >= 2 * d1) & (d2 - d1 >= AMBIGUITY_MARGIN))
+        reason[free[amb]] = R_AMBIGUOUS
+        take = near & ~amb & (slot_of[j[:, 0]] < 0)
+        cand = j[take, 0]
+        slots = free[take]
+        # a blob claimed by two free slots is ambiguous for both
+        u, cnt = np.unique(cand, return_counts=True)
+        dup = np.isin(cand, u[cnt > 1])
+        reason[slots[dup]] = R_AMBIGUOUS
+        cand, slots = cand[~dup], slots[~dup]
+        if len(cand) == 0:
+            break
+        trial = slot_of.copy()
+        trial[cand] = slots
+        trial = consistent(pts, trial, lat, reason)
+        if np.array_equal(trial >= 0, slot_of >= 0) and np.array_equal(trial, slot_of):
+            break
+        gained = np.count_nonzero(trial >= 0) - np.count_nonzero(slot_of >= 0)
+        slot_of = trial
+        if gained <= 0:
+            break
+    return slot_of

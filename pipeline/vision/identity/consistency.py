@@ -1,0 +1,170 @@
+"""Local consistency (test 1 of the certainty rule): every labelled blob and its identified
+immediate neighbours agree with the leave-one-out affine fits of its design neighbourhood, or the
+blob is the vertex of an intact fan; :func:`consistent` strips inconsistent labels until none is
+left."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from pipeline.vision.identity.constants import (_NEED_TREE, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, LOCAL_ONLY,
+                                                MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT)
+from pipeline.vision.identity.fans import _embedded
+from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
+from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
+from pipeline.vision.kdtree import kd_query
+
+
+@numba.njit(cache=True)
+def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
+                 pitch, gate, order, stop_after):
+    """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
+
+    The neighbourhood of a blob's slot is the identified slots of ``nbr2``; the blob itself and
+    each identified immediate neighbour (``nbr``) must lie within ``gate`` local pitches of the
+    position the affine map fitted to the rest of the neighbourhood predicts for it; and the blob
+    must be the unambiguous nearest blob to its own prediction (R_AMBIGUOUS otherwise: at least
+    twice as near as the second-nearest and 0.15 pitches nearer). A blob failing these is still
+    consistent when it is the vertex of an intact image of its design fan (:func:`_embedded`).
+    ``tree``: :func:`kd_build` of ``pts``; with ``has_tree`` False (a placeholder tree) a blob whose
+    test needs a blob search gets :data:`_NEED_TREE` instead (not counted as inconsistent).
+    Blobs are visited in ``order``; with ``stop_after`` > 0 the visit stops once that many are
+    inconsistent (the anchoring test needs only that much evidence)."""
+    n = len(slot_of)
+    status = np.zeros(n, np.int64)
+    K = nbr2.shape[1]
+    slots = np.empty(K + 1, np.int64)
+    blobs = np.empty(K + 1, np.int64)
+    acc = np.empty(12)
+    two = np.empty(2, np.int64)
+    two_d2 = np.empty(2)
+    ring = np.empty(fan.shape[1], np.int64)
+    near = np.empty(FAN_QUERY, np.int64)
+    near_d2 = np.empty(FAN_QUERY)
+    n_bad = 0
+    for b in order:
+        if stop_after > 0 and n_bad >= stop_after:
+            break
+        s = slot_of[b]
+        if s < 0:
+            continue
+        # an intact fan is the cheaper test, and the one a strongly pressed neighbourhood passes
+        # (slots without a fan, e.g. every slot of a circular pattern, go straight to the fits)
+        e = 0
+        if fan[s, 0] >= 0:
+            e = _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring,
+                          near, near_d2)
+        if e == 1:
+            st = 0
+        elif e == _NEED_TREE:
+            st = _NEED_TREE
+        else:
+            st = _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots,
+                             blobs, acc, two, two_d2, K)
+        status[b] = st
+        if st == R_INCONSISTENT:
+            n_bad += 1
+    return status
+
+
+@numba.njit(cache=True)
+def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc, two,
+                two_d2, K):
+    """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
+
+    The immediate design neighbours ``nbr[s]`` are the first entries of ``nbr2[s]`` (both sorted
+    by distance; :func:`lattice_of` checks it), so the identified neighbourhood is gathered in one
+    pass with the immediate ones first, and the second shell only when it is fitted at all."""
+    n_design = _row_length(nbr, s)
+    slots[0] = s
+    blobs[0] = b
+    m = _gather(s, nbr2, 0, n_design, blob_of, slots, blobs, 1)
+    n_imm = m - 1
+    if n_imm < LOCAL_ONLY:
+        # the second shell completes the neighbourhood fitted where few immediate neighbours are
+        # identified; with LOCAL_ONLY or more, only the closed immediate neighbourhood is fitted,
+        # where a strongly curved press is still affine
+        m = _gather(s, nbr2, n_design, K, blob_of, slots, blobs, m)
+    if m < 4 or n_imm < MIN_IMMEDIATE:
+        return R_FEW
+    ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
+    # the whole design neighbourhood identified: the design half of each fit is tabulated
+    whole = n_imm == n_design and m == loo_m[s]
+    _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc)
+    for q in range(n_imm + 1):              # the blob itself and its immediate neighbours
+        if whole:
+            ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit_tab(xy, pts, slots, blobs, acc, q, ox, oy, ou, ov, loo_tab[s, q])
+            dx = loo_tab[s, q, 7]
+            dy = loo_tab[s, q, 8]
+        else:
+            ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, blobs, acc, q, ox, oy, ou, ov, pitch)
+            dx = xy[slots[q], 0] - ox - mx
+            dy = xy[slots[q], 1] - oy - my
+        if ok < 0:
+            return R_INCONSISTENT
+        if ok == 0:
+            if q == 0:
+                return R_FEW
+            continue
+        pu = ou + mu + l00 * dx + l01 * dy
+        pv = ov + mv + l10 * dx + l11 * dy
+        scale = math.sqrt(l00 * l11 - l01 * l10) * pitch
+        r = math.hypot(pts[blobs[q], 0] - pu, pts[blobs[q], 1] - pv) / scale
+        if r > gate:
+            return R_INCONSISTENT
+        if q == 0 and len(pts) >= 2:
+            if not has_tree:
+                return _NEED_TREE
+            kd_query(pts, tree, pu, pv, 2, two, two_d2)
+            d1 = math.sqrt(two_d2[0]) / scale
+            d2 = math.sqrt(two_d2[1]) / scale
+            if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
+                return R_AMBIGUOUS
+            if n_imm <= n_design - 2:
+                # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
+                # to b than CLOSE_BLOB separations leaves open which of the two is the marker
+                kd_query(pts, tree, pts[b, 0], pts[b, 1], 2, two, two_d2)
+                if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
+                    return R_AMBIGUOUS
+    return 0
+
+
+def _blob_of(slot_of: np.ndarray, n_slots: int) -> np.ndarray:
+    b = np.full(n_slots, -1, np.int64)
+    lab = np.flatnonzero(slot_of >= 0)
+    b[slot_of[lab]] = lab
+    return b
+
+
+def _statuses(pts, adj, slot_of, lat, order=None):
+    """:func:`_consistency` of every labelled blob; the k-d tree of the blobs is built only when
+    some blob's test needs a search (usually none does: intact fans are checked on the Delaunay
+    triangulation)."""
+    blob_of = _blob_of(slot_of, len(lat.xy))
+    order = np.arange(len(slot_of)) if order is None else order
+    has_tree = not lat.translation_lattice          # no fans: every test searches
+    st = _consistency(pts, _tree(pts) if has_tree else _PLACEHOLDER_TREE, has_tree, adj[0], adj[1], slot_of, blob_of,
+                      lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0)
+    need = np.flatnonzero(st == _NEED_TREE)
+    if len(need):
+        st2 = _consistency(pts, _tree(pts), True, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2,
+                           lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, need, 0)
+        st[need] = st2[need]
+    return st
+
+
+def consistent(pts, slot_of, lat, reason):
+    """Remove labels failing local consistency until none does; records the reason per slot."""
+    slot_of = slot_of.copy()
+    adj = _adj(pts)
+    for _ in range(len(lat.xy)):
+        st = _statuses(pts, adj, slot_of, lat)
+        bad = np.flatnonzero(st > 0)
+        if len(bad) == 0:
+            break
+        reason[slot_of[bad]] = st[bad]
+        slot_of[bad] = -1
+    return slot_of
