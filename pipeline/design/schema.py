@@ -69,13 +69,8 @@ class Gel:
     source: str
 
 
-@dataclass(frozen=True)
-class Camera:
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    dist: tuple[float, ...]  # OpenCV order (k1, k2, p1, p2, k3)
+class _Lens:
+    """The pinhole-plus-distortion model of a camera with ``fx_px, fy_px, cx_px, cy_px`` and ``dist``."""
 
     @property
     def K(self) -> np.ndarray:
@@ -86,6 +81,15 @@ class Camera:
     def D(self) -> np.ndarray:
         """Distortion coefficients (5,), float64, OpenCV order."""
         return np.asarray(self.dist, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Camera(_Lens):
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist: tuple[float, ...]  # OpenCV order (k1, k2, p1, p2, k3)
 
 
 @dataclass(frozen=True)
@@ -101,7 +105,7 @@ class Cameras:
 
 
 @dataclass(frozen=True)
-class MonoCamera:
+class MonoCamera(_Lens):
     """The single camera of a monocular (TacTip-type) sensor: on the sensor axis below the skin, looking
     along +z (OpenCV axes = sensor axes); ``roll_deg`` turns it about its optical axis."""
 
@@ -117,14 +121,6 @@ class MonoCamera:
     x_mm: float = 0.0
     y_mm: float = 0.0
     roll_deg: float = 0.0
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
-
-    @property
-    def D(self) -> np.ndarray:
-        return np.asarray(self.dist, dtype=np.float64)
 
 
 #: Keys of the optional ``[twin]`` section (rendering appearance and tap physics of a monocular design),
