@@ -109,7 +109,7 @@ def test_overrides_revalidate():
 import dataclasses  # noqa: E402
 import sys  # noqa: E402
 
-from pipeline.design import Gel, Optics, design_digest, to_dict  # noqa: E402
+from pipeline.design import Gel, Optics, design_digest, mapping_to_toml, to_dict  # noqa: E402
 from pipeline.errors import UserError  # noqa: E402
 
 if sys.version_info >= (3, 11):
@@ -140,21 +140,8 @@ def _module_base(tmp_path, name="base.toml", **edits):
         for part in sec.split("."):
             node = node[part]
         node[k] = value
-    from pipeline.design import _toml_value
-
-    lines = ["abstract = true"]
-
-    def table(prefix, d):
-        lines.append(f"\n[{prefix}]")
-        lines.extend(f"{k} = {_toml_value(v)}" for k, v in d.items() if not isinstance(v, dict))
-        for k, v in d.items():
-            if isinstance(v, dict):
-                table(f"{prefix}.{k}", v)
-
-    for sec, d in raw.items():
-        table(sec, d)
     p = tmp_path / name
-    p.write_text("\n".join(lines) + "\n")
+    p.write_text(mapping_to_toml({"abstract": True, **raw}))
     return p
 
 

@@ -241,19 +241,19 @@ def test_compiled_pyramid_steps_match_their_opencv_definitions(shape):
     area reduction against cv2.resize INTER_AREA, within 2e-7 on [0, 1] images (float32 sums in a
     different order; measured 1.8e-7), and level 2 from the uint8 pixels against the 2x2 INTER_AREA
     mean of the float image, within 1e-7 (one rounding instead of two)."""
-    from pipeline.vision import detection as D
+    from pipeline.vision.detection import pyramid as D
 
     rng = np.random.default_rng(shape[0])
     src = rng.random(shape).astype(np.float32)
     for f in (np.sqrt(2), 1.5, 2.3):
         w1, h1 = max(1, round(shape[1] / f)), max(1, round(shape[0] / f))
         ref = cv2.resize(src, (w1, h1), interpolation=cv2.INTER_AREA)
-        assert np.abs(D._area_resize(src, w1, h1, "test") - ref).max() < 2e-7
+        assert np.abs(D.area_resize(src, w1, h1, "test") - ref).max() < 2e-7
     u8 = rng.integers(0, 256, (2 * shape[0] + 1, 4 * shape[1] + 1), dtype=np.uint8)
     view = u8[:, : 2 * shape[1] + 1]                       # a strided view, as StereoFrame.left is
     ref = cv2.resize((view * np.float32(1 / 255))[: 2 * shape[0], : 2 * shape[1]], shape[::-1],
                      interpolation=cv2.INTER_AREA)
-    out = D._half_u8(view, np.empty(shape, np.float32))
+    out = D.half_u8(view, np.empty(shape, np.float32))
     assert np.abs(out - ref).max() < 1e-7
 
 
@@ -265,25 +265,25 @@ def test_compiled_fast_paths_equal_their_in_order_definitions():
       and partial sum is exact; see _window_moments), on random images and backgrounds;
     - the area reduction with a fixed, zero-padded tap count equals the CSR weights summed in order;
     - the compiled median and sorted-unique equal numpy's."""
-    from pipeline.vision import detection as D
+    from pipeline.vision.detection import photometry, pyramid, rejection
 
     rng = np.random.default_rng(11)
     img = rng.integers(0, 256, (60, 70), dtype=np.uint8)
     img[20:40, 20:45] = 255                                   # a saturated plateau in some windows
     for radius in (2.0, 4.5, 9.0):
-        spans = D._offset_tables((radius / np.sqrt(2),), DetectionParams())[8]
+        spans = photometry._offset_tables((radius / np.sqrt(2),), DetectionParams())[8]
         for bg in (0.0, *[float(np.float32(q / 255.0)) for q in rng.integers(0, 256, 6)],
                    float(np.float32(0.5 * (np.float32(3 / 255) + np.float32(4 / 255))))):
             for ix, iy in rng.integers(15, 45, (6, 2)):
                 args = (img, int(ix), int(iy), spans, 0, len(spans))
-                fast = D._window_moments(*args, bg)
-                ref = D._window_moments.py_func(*args, np.float64(bg))    # in order, float64 as compiled
+                fast = photometry._window_moments(*args, bg)
+                ref = photometry._window_moments.py_func(*args, np.float64(bg))    # in order, float64 as compiled
                 assert np.array(fast).tobytes() == np.array(ref, np.float64).tobytes()
     src = rng.random((23, 31)).astype(np.float32)
     for f in (np.sqrt(2), 1.5, 2.3):
         w1, h1 = max(1, round(31 / f)), max(1, round(23 / f))
-        xi, xw, xp = D._area_table(31, w1)
-        yi, yw, yp = D._area_table(23, h1)
+        xi, xw, xp = pyramid.area_table(31, w1)
+        yi, yw, yp = pyramid.area_table(23, h1)
         ref = np.empty((h1, w1), np.float32)
         for y in range(h1):
             row = np.zeros(31, np.float32)
@@ -294,10 +294,10 @@ def test_compiled_fast_paths_equal_their_in_order_definitions():
                 for k in range(xp[x], xp[x + 1]):
                     acc = np.float32(acc + xw[k] * row[xi[k]])
                 ref[y, x] = acc
-        assert D._area_resize(src, w1, h1, "test").tobytes() == ref.tobytes()
+        assert pyramid.area_resize(src, w1, h1, "test").tobytes() == ref.tobytes()
     for n in (1, 2, 5, 6, 217, 218):
         a = 2.0 ** (np.rint(8 * rng.uniform(0, 3, n)) / 8)
-        assert np.float64(D._median(a)).tobytes() == np.float64(np.median(a)).tobytes()
+        assert np.float64(rejection._median(a)).tobytes() == np.float64(np.median(a)).tobytes()
         u, inv = np.unique(a, return_inverse=True)
-        u2, inv2 = D._unique_inverse(a)
+        u2, inv2 = photometry._unique_inverse(a)
         assert u2.tobytes() == u.tobytes() and np.array_equal(inv2, inv)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.types import DataError, HeightMap, _arr
+from pipeline.types import DataError, HeightMap, checked_array
 
 __all__ = ["Truth"]
 
@@ -49,7 +49,7 @@ class Truth:
         return None if self.validity is None else bool(self.validity["valid"])
 
     def __post_init__(self) -> None:
-        f = lambda name, **kw: object.__setattr__(self, name, _arr(f"Truth.{name}", getattr(self, name), **kw))
+        f = lambda name, **kw: object.__setattr__(self, name, checked_array(f"Truth.{name}", getattr(self, name), **kw))
         f("marker_ids", dtype=np.int64, shape=(-1,))
         f("marker_xyz_mm", dtype=np.float64, shape=(len(self.marker_ids), 3))
         f("marker_axis", dtype=np.float64, shape=(len(self.marker_ids), 3))

@@ -1,0 +1,242 @@
+"""Rejection of what is not a marker (glare, the bright rim, debris) and the handling of touching markers."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.vision.detection.candidates import ELONGATION, MEASURE_SIGMA, RADIUS_PER_SIGMA, SIGMA
+from pipeline.vision.detection.images import U8_SCALE
+from pipeline.vision.detection.params import DetectionParams
+from pipeline.vision.detection.peaks import suppress
+from pipeline.vision.detection.photometry import (RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS,
+                                                  WINDOW_MARGIN_PX, Measurements, group_offsets, refine_and_measure)
+
+#: Floor (on the [0, 1] scale) of the contrast that scales the isolation limits, so that a candidate
+#: without contrast gets a tiny positive limit rather than zero or a negative one.
+_CONTRAST_FLOOR = 1e-6
+#: Markers that must pass the strict tests before the image's typical marker (median scale, marker
+#: field) is trusted; with fewer, a median says nothing and only the strict tests apply.
+MIN_TYPICAL_MARKERS = 5
+#: A blob whose core is more than ``_MAX_GLARE_CORE_SATURATION`` saturated is LED glare, unless the
+#: median accepted marker has at least ``_CLIPPED_CORE_SATURATION`` of its core saturated (the
+#: exposure clips every marker: saturation then says nothing).
+_CLIPPED_CORE_SATURATION = 0.5
+_MAX_GLARE_CORE_SATURATION = 0.3
+#: A touching peer explains the ring sectors whose centre direction is within this angle (rad) of
+#: its own: the sector it lies in and, when it sits near a boundary, the next one.
+_PEER_HALF_ANGLE_RAD = np.pi / 4
+
+
+@numba.njit(cache=True, nogil=True)
+def _median(a):
+    """``np.median`` of a 1-D float64 array, the same value bit for bit (middle sample, or the two
+    middle samples' sum halved), NaN when empty or when any sample is NaN; without numpy's per-call
+    overhead, which is most of the cost for the few hundred blobs of a view."""
+    n = len(a)
+    if n == 0:
+        return np.nan
+    s = np.sort(a)
+    if np.isnan(s[n - 1]):
+        return np.nan
+    m = n // 2
+    if n % 2 == 1:
+        return s[m]
+    return (s[m - 1] + s[m]) / 2.0
+
+
+def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: np.ndarray,
+                 examine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Brightest ring sector (minus the ring median) per candidate, not counting sectors that look at
+    a touching marker; and whether the candidate touches one.
+
+    A marker squeezed against its neighbours (pins crowding under a steep flank) has bright ring
+    sectors too, but that light is another marker's: sectors whose centre direction lies within
+    ``_PEER_HALF_ANGLE_RAD`` (45 deg) of a ``peers`` candidate (one that passed the contrast, shape, saturation and upper size
+    tests) closer than the two rings' reach (``RING_IN r + RING_WIDTH_PX + r_peer``) are left out. Glare stays
+    rejected: a bright region that is not itself a marker-sized blob explains no sector. At least half
+    the sectors must remain, else the candidate keeps its plain brightest sector. Only candidates with
+    ``examine`` set are looked at (the others keep their plain spread and are not ``crowded``).
+
+    Returns
+    -------
+    spread : (N,) brightest unexplained sector minus the ring median
+    crowded : (N,) bool, a peer touches the candidate's ring
+    """
+    spread = sectors.max(axis=1)
+    crowded = np.zeros(len(xy), dtype=bool)
+    idx = np.nonzero(peers)[0]
+    if len(idx) < 2 or not examine.any():
+        return spread, crowded
+    tree = cKDTree(xy[idx])
+    reach = RING_IN * radius + RING_WIDTH_PX
+    centres = -np.pi + (np.arange(SECTORS) + 0.5) * (2 * np.pi / SECTORS)
+    for i in np.nonzero(examine)[0]:
+        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
+        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
+        if not near:
+            continue
+        crowded[i] = True
+        d = xy[near] - xy[i]
+        ang = np.arctan2(d[:, 1], d[:, 0])
+        off = np.abs((centres[None, :] - ang[:, None] + np.pi) % (2 * np.pi) - np.pi)
+        masked = (off < _PEER_HALF_ANGLE_RAD).any(axis=0)
+        if masked.sum() <= SECTORS // 2:
+            spread[i] = sectors[i, ~masked].max()
+    return spread, crowded
+
+
+def _split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
+                     peers: np.ndarray, params: DetectionParams) -> np.ndarray:
+    """Centroids of touching markers with each neighbour's light excluded.
+
+    The plain centroid window (``centroid_radius_factor`` x r) of a marker squeezed against another
+    takes in the neighbour's edge and is pulled toward it (measured ~1.5 px for a 1 px gap). For the
+    candidates in ``which`` the window is split Voronoi-wise: pixels nearer to a ``peers`` centre than
+    to this one are left out; background = median of the window's remaining pixels outside ``RING_IN r``.
+    Two re-centred passes, as for isolated markers. Returns the updated (N, 2) centres.
+    """
+    out = xy.copy()
+    if not which.any():
+        return out
+    idx = np.nonzero(peers)[0]
+    tree = cKDTree(xy[idx])
+    h, w = grey.shape
+    for i in np.nonzero(which)[0]:
+        r = float(radius[i])
+        r_win = params.centroid_radius_factor * r + WINDOW_MARGIN_PX
+        nb = [idx[j] for j in tree.query_ball_point(xy[i], 2 * r_win) if idx[j] != i]
+        c = xy[i].copy()
+        for _ in range(max(1, params.centroid_iterations)):
+            x0, x1 = int(max(0, np.floor(c[0] - r_win))), int(min(w - 1, np.ceil(c[0] + r_win)))
+            y0, y1 = int(max(0, np.floor(c[1] - r_win))), int(min(h - 1, np.ceil(c[1] + r_win)))
+            gx, gy = np.meshgrid(np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64))
+            d2 = (gx - c[0]) ** 2 + (gy - c[1]) ** 2
+            own = d2 <= r_win * r_win
+            for j in nb:
+                own &= d2 < (gx - xy[j, 0]) ** 2 + (gy - xy[j, 1]) ** 2
+            v = (grey[y0:y1 + 1, x0:x1 + 1] * U8_SCALE).astype(np.float64)
+            ring = own & (d2 >= (RING_IN * r) ** 2)
+            bg = float(np.median(v[ring])) if ring.any() else 0.0
+            wts = np.where(own, np.maximum(v - bg, 0.0), 0.0)
+            tot = wts.sum()
+            if tot <= 0:
+                break
+            new = np.array([(wts * gx).sum() / tot, (wts * gy).sum() / tot])
+            if np.hypot(*(new - xy[i])) > RUNAWAY_FRACTION * r + RUNAWAY_PX:
+                break
+            c = new
+        out[i] = c
+    return out
+
+
+def _inside_hull(xy: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(N,) bool: ``xy`` inside the marker field: the convex hull of ``ref`` grown by half the median
+    nearest-neighbour spacing of ``ref`` away from its centroid (an outer-ring marker that failed the
+    strict tests sits on the hull's edge, not inside it). False everywhere for < 3 points or a
+    degenerate hull."""
+    from scipy.spatial import Delaunay, QhullError
+
+    if len(ref) < 3:
+        return np.zeros(len(xy), bool)
+    spacing = float(np.median(cKDTree(ref).query(ref, k=2)[0][:, 1]))
+    c = ref.mean(axis=0)
+    r = np.maximum(np.hypot(*(ref - c).T), 1e-9)[:, None]
+    grown = c + (ref - c) * (1.0 + 0.5 * spacing / r)
+    try:
+        return Delaunay(grown).find_simplex(xy) >= 0
+    except QhullError:
+        return np.zeros(len(xy), bool)
+
+
+def _ring_background(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Median of the background ring (as the photometry's: ``RING_IN r + RING_GAP_PX .. RING_IN r + RING_WIDTH_PX`` px about the
+    rounded centre) per centre, on the [0, 1] scale; NaN where the ring is wholly outside the image."""
+    h, w = grey.shape
+    out = np.full(len(xy), np.nan)
+    for i, ((u, v), r) in enumerate(zip(xy, radius)):
+        dx, dy = group_offsets(float(r), DetectionParams())[:2]
+        x, y = int(np.rint(u)) + dx, int(np.rint(v)) + dy
+        ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        if ok.any():
+            out[i] = float(np.median(grey[y[ok], x[ok]])) / 255.0
+    return out
+
+
+
+def separate_debris(grey: np.ndarray, cand_all: np.ndarray, cand: np.ndarray, measured: Measurements,
+                    params: DetectionParams) -> tuple[np.ndarray, np.ndarray, Measurements]:
+    """Candidates with the debris (specks far smaller than the typical marker) suppressed apart from the
+    markers, so that a speck on a marker cannot shadow it, and re-measured.
+
+    The typical marker is the median scale of the candidates in ``cand`` (suppressed, measured as
+    ``measured``) that pass the strict tests; debris is every candidate of ``cand_all`` (unsuppressed)
+    below 1/``params.debris_size_ratio`` of it. Debris is still measured, as a blob that may light a
+    neighbour's ring (see :func:`_ring_spread`), and is never kept. Returns the candidates (markers
+    first), the (N,) debris mask and their measurements; unchanged, with no debris, when fewer than
+    :data:`MIN_TYPICAL_MARKERS` pass the strict tests.
+    """
+    typical = ((measured.contrast >= params.min_contrast) & (cand[:, ELONGATION] <= params.max_elongation)
+               & (measured.sat <= params.max_saturated_fraction)
+               & (measured.sectors.max(axis=1) <= params.isolation * np.maximum(measured.contrast, _CONTRAST_FLOOR)))
+    if typical.sum() < MIN_TYPICAL_MARKERS:
+        return cand, np.zeros(len(cand), bool), measured
+    small_all = cand_all[:, SIGMA] < float(np.median(cand[typical, SIGMA])) / params.debris_size_ratio
+    parts = [suppress(cand_all[~small_all], params.min_separation_px),
+             suppress(cand_all[small_all], params.min_separation_px)]
+    cand = np.concatenate(parts)
+    debris = np.arange(len(cand)) >= len(parts[0])
+    return cand, debris, refine_and_measure(grey, cand, params)
+
+
+def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: np.ndarray,
+           params: DetectionParams) -> tuple[np.ndarray, np.ndarray]:
+    """Which candidates are markers, and their centres with touching neighbours' light excluded.
+
+    Contrast always; with ``params.rejections``: elongation, ring saturation and isolation, then,
+    against the typical marker of this image (once :data:`MIN_TYPICAL_MARKERS` pass the strict tests),
+    size, touching neighbours (:func:`_ring_spread`), debris, background level and core saturation.
+    Returns the (N,) keep mask and the (N, 2) centres (``measured.xy`` but for crowded markers,
+    re-centred by :func:`_split_centroids`).
+    """
+    xy, contrast, sectors, sat, core_sat = measured
+    keep = contrast >= params.min_contrast
+    if not params.rejections:
+        return keep, xy
+    keep &= cand[:, ELONGATION] <= params.max_elongation
+    keep &= sat <= params.max_saturated_fraction
+    limit = params.isolation * np.maximum(contrast, _CONTRAST_FLOOR)
+    isolated = sectors.max(axis=1) <= limit
+    if (keep & isolated & ~debris).sum() < MIN_TYPICAL_MARKERS:
+        return keep & isolated & ~debris, xy
+    # outliers against the typical marker of this image: size (a marker squeezed between touching
+    # neighbours reads smaller: down to 1/ratio**2), and saturation where markers are not saturated
+    # (LED glare is; exposure-clipped markers all are)
+    med = float(_median(cand[keep & isolated & ~debris, SIGMA]))
+    big_ok = cand[:, SIGMA] <= params.max_size_ratio * med
+    small = cand[:, SIGMA] < med / params.max_size_ratio
+    radius = RADIUS_PER_SIGMA * cand[:, MEASURE_SIGMA]
+    inside = np.zeros(len(cand), bool)
+    if params.isolation_inside is not None or debris.any():
+        # the marker field: the convex hull of the markers that pass the strict tests
+        inside = _inside_hull(xy, xy[keep & isolated & big_ok & ~small & ~debris])
+    if params.isolation_inside is not None:
+        limit = np.where(inside, params.isolation_inside * np.maximum(contrast, _CONTRAST_FLOOR), limit)
+    # debris explains a lit ring sector only within the marker field (specks at the edge of glare
+    # outside it must not excuse the glare)
+    peers = keep & big_ok & (~debris | inside)
+    spread, crowded = _ring_spread(xy, radius, sectors, peers, keep & (~isolated | small))
+    keep &= (spread <= limit) & big_ok
+    keep &= ~small | (crowded & (cand[:, SIGMA] >= med / params.max_size_ratio ** 2))
+    if params.debris_size_ratio is not None:
+        keep &= (cand[:, SIGMA] >= med / params.debris_size_ratio) & ~debris
+    if params.max_background_ratio is not None and keep.any():
+        idx = np.nonzero(keep)[0]
+        bg = _ring_background(grey, xy[idx], radius[idx])
+        keep[idx[~(bg <= params.max_background_ratio * contrast[idx])]] = False
+    # (debris touching a marker is excluded from its centroid as a touching marker is)
+    xy = _split_centroids(grey, xy, radius, keep & crowded, (keep & big_ok) | (peers & debris), params)
+    if _median(core_sat[keep]) < _CLIPPED_CORE_SATURATION:
+        keep &= core_sat <= _MAX_GLARE_CORE_SATURATION
+    return keep, xy
