@@ -44,7 +44,8 @@ def _key_values(items: list[str] | None, option: str) -> dict[str, Any]:
 
 def _bench(args: argparse.Namespace) -> int:
     from benchmarks.registry import Context, all_experiments, get
-    from benchmarks.results import check, execute, load_thresholds
+    from benchmarks.results import execute
+    from benchmarks.thresholds import check, load_thresholds
 
     exps = all_experiments()
     if args.name == "list":
