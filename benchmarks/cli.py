@@ -221,7 +221,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from benchmarks import cli_terrain
 
     cli_terrain.register(sub)                      # stereotactip terrain
-    from benchmarks import tactip_fit, tactip_validate
+    from benchmarks import tactip_fit_cli, tactip_validate
 
-    tactip_fit.register(sub)                       # stereotactip fit-twin
+    tactip_fit_cli.register(sub)                   # stereotactip fit-twin
     tactip_validate.register(sub)                  # stereotactip validate
