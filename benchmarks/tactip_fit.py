@@ -35,7 +35,7 @@ from pipeline.design import SensorDesign, design_from_dict, to_dict
 from pipeline.vision.detection import detect_markers
 from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identify_sequence
 from twin.tactip import DomeSkin, TapPose, check_monocular, project_markers, render_frame
-from twin.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
+from benchmarks.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
 __all__ = ["FitContext", "apply_params", "camera_vector", "fit_layout", "fit_camera_reference", "fit_camera_all",
            "fit_physics", "fit_appearance", "CAM_KEYS", "LAYOUT_SEPARATIONS_MM"]

@@ -17,7 +17,7 @@ from benchmarks.tactip_fit import (CAM_KEYS, LAYOUT_SEPARATIONS_MM, FitContext, 
 from pipeline.design import load_design, to_toml
 from pipeline.io.atomic import atomic_write_json, atomic_write_text
 from twin.tactip import check_monocular
-from twin.tapdata import digest
+from benchmarks.tapdata import digest
 
 __all__ = ["fit_twin", "register", "cmd_fit"]
 
