@@ -44,7 +44,8 @@ def _key_values(items: list[str] | None, option: str) -> dict[str, Any]:
 
 def _bench(args: argparse.Namespace) -> int:
     from benchmarks.registry import Context, all_experiments, get
-    from benchmarks.results import check, execute, load_thresholds
+    from benchmarks.results import execute
+    from benchmarks.thresholds import check, load_thresholds
 
     exps = all_experiments()
     if args.name == "list":
@@ -220,7 +221,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     from benchmarks import cli_terrain
 
     cli_terrain.register(sub)                      # stereotactip terrain
-    from benchmarks import tactip_fit, tactip_validate
+    from benchmarks import tactip_fit_cli, tactip_validate
 
-    tactip_fit.register(sub)                       # stereotactip fit-twin
+    tactip_fit_cli.register(sub)                   # stereotactip fit-twin
     tactip_validate.register(sub)                  # stereotactip validate

@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any, Mapping
 
-from benchmarks.results import ResultsError, check, load_records, load_thresholds
+from benchmarks.results import ResultsError, load_records
+from benchmarks.thresholds import bounds_text, check, load_thresholds
 
 __all__ = ["write_report", "render_report", "gate_figures_markdown", "update_readme", "README_BEGIN", "README_END"]
 
@@ -196,7 +197,7 @@ def write_report(out_dir: Path, screenshot: bool = True, against: Path | None = 
     html_path = atomic_write_text(out_dir / "report.html", render_html(records, out_dir))
     png, shot = out_dir / "report.png", None
     if screenshot:
-        from benchmarks.report_html import write_screenshot
+        from benchmarks.browser import write_screenshot
 
         try:
             shot = write_screenshot(html_path, png)
@@ -241,20 +242,12 @@ def gate_figures_markdown(records: Mapping[str, Mapping[str, Any]], source: str)
             unit = m.get("unit", "")
             shown = th.metric if th.mode is None else f"{th.metric} ({th.mode})"
             value = f"{_fmt(m.get('value'))} {unit if unit != '1' else ''}".strip()
-            golden = _bounds(th.golden_min, th.golden_max)
-            sanity = _bounds(th.min, th.max)
+            golden = bounds_text(th.golden_min, th.golden_max, table=True)
+            sanity = bounds_text(th.min, th.max, table=True)
             ok = "**fails**" if (exp, shown) in violations else "passes"
             lines.append(f"| {exp} | {shown} | {value} | {golden} | {sanity} | {th.kind or '—'} | {ok} |")
     lines += ["", README_END]
     return "\n".join(lines)
-
-
-def _bounds(lo: float | None, hi: float | None) -> str:
-    if lo is None and hi is None:
-        return "—"
-    if lo is not None and hi is not None:
-        return f"{lo:.4g} – {hi:.4g}"
-    return f"≥ {lo:.4g}" if lo is not None else f"≤ {hi:.4g}"
 
 
 def update_readme(readme: Path, records_dir: Path) -> Path:

@@ -1,6 +1,6 @@
-"""``stereotactip fit-twin``: identify what a public TacTip design does not fix from labelled real taps.
+"""Fitting a TacTip twin: identify what a public TacTip design does not fix from labelled real taps.
 
-Stages (each cached in ``OUT.cache/`` keyed by its inputs, so an interrupted fit resumes):
+Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.tactip_fit_cli`):
 
 1. **camera** — the shallowest training tap is simulated with the nominal skin; its pin tips are projected
    through a camera on the sensor axis; the camera's roll about its axis is found by a 1° grid over the
@@ -27,20 +27,18 @@ from __future__ import annotations
 
 import json
 import math
-import time
-from pathlib import Path
 
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
-from pipeline.io.atomic import atomic_write_json, atomic_write_text
-from pipeline.design import SensorDesign, design_from_dict, load_design, to_dict, to_toml
+from pipeline.design import SensorDesign, design_from_dict, to_dict
 from pipeline.vision.detection import detect_markers
 from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identify_sequence
 from twin.tactip import DomeSkin, TapPose, check_monocular, project_markers, render_frame
-from twin.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
+from benchmarks.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
-__all__ = ["FitContext", "apply_params", "cmd_fit", "register"]
+__all__ = ["FitContext", "apply_params", "camera_vector", "fit_layout", "fit_camera_reference", "fit_camera_all",
+           "fit_physics", "fit_appearance", "CAM_KEYS", "LAYOUT_SEPARATIONS_MM"]
 
 CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
@@ -386,142 +384,3 @@ def fit_appearance(ctx: FitContext, design: SensorDesign, twin: dict) -> tuple[d
         if got["noise"] > 0:
             twin["noise_grey"] = float(max(twin["noise_grey"] * target["noise"] / got["noise"], 0.0))
     return twin, {"real": target, "twin_passes": history}
-
-
-# ----- the command ---------------------------------------------------------------------------
-
-def _cached(cache: Path, name: str, key: str, fn):
-    path = cache / f"{name}.json"
-    if path.is_file():
-        data = json.loads(path.read_text())
-        if data.get("key") == key:
-            return data["value"], True
-    value = fn()
-    cache.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(path, {"key": key, "value": value}, indent=1)
-    return value, False
-
-
-def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
-             skip_unlabelled: bool = False) -> dict:
-    from tqdm import tqdm
-
-    design = load_design(design_name)
-    check_monocular(design)
-    ctx = FitContext(frames, targets, design, progress=progress, skip_unlabelled=skip_unlabelled, log=log)
-    cache = Path(str(out) + ".cache")
-    base_key = ctx.key()
-    t0 = time.time()
-    log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
-        f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
-        f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
-    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 5, desc="fit-twin", unit="step", disable=not progress)
-    twin0 = design.twin_params()
-
-    def stage0():
-        sep, scores = fit_layout(ctx, twin0, bar)
-        return {"separation_mm": sep, "scores": scores}
-
-    s0, hit = _cached(cache, "0_layout", base_key, stage0)
-    if hit:
-        bar.update(len(LAYOUT_SEPARATIONS_MM))
-    log(f"  pin spacing on the dome{' (cached)' if hit else ''}: {s0['separation_mm']:.2f} mm "
-        f"(scores " + ", ".join(f"{b:.1f}: {a:.2f}" for a, b in s0["scores"]) + ")")
-    design = apply_params(design, {"separation_mm": s0["separation_mm"]})
-    ctx = ctx.with_design(design)
-
-    def stage1():
-        d, ref_xy, rep = fit_camera_reference(ctx, twin0)
-        return {"cam": dict(zip(CAM_KEYS, map(float, camera_vector(d)))), "ref_xy": ref_xy.tolist(), "report": rep}
-
-    s1, hit = _cached(cache, "1_camera_reference", digest(base_key, s0["separation_mm"]), stage1)
-    bar.update(1)
-    d1 = apply_params(design, s1["cam"])  # (design carries the fitted spacing)
-    ctx.set_reference(np.asarray(s1["ref_xy"], dtype=np.float64))
-    ident = [int(np.isfinite(x[:, 0]).sum()) for x in ctx.real_xy]
-    log(f"  camera from the reference tap{' (cached)' if hit else ''}: {s1['report']['matched']} markers matched, "
-        f"RMS {s1['report']['rms_px']:.2f} px; identified per frame: min {min(ident)}, median "
-        f"{int(np.median(ident))} of {design.marker_count}")
-
-    def stage23():
-        tw, rep = fit_physics(ctx, d1, twin0, bar)
-        return {"twin": tw, "report": rep}
-
-    s23, hit = _cached(cache, "2_physics", digest(base_key, s1["cam"]), stage23)
-    if hit:
-        bar.update(24 + 4)
-    twin = s23["twin"]
-
-    def stage4():
-        d, rep = fit_camera_all(ctx, d1, twin)
-        return {"cam": rep["values"], "report": rep}
-
-    s4, hit = _cached(cache, "4_camera_all", digest(base_key, s1["cam"], twin), stage4)
-    bar.update(1)
-    d4 = apply_params(design, s4["cam"])
-
-    def stage5():
-        tw, rep = fit_appearance(ctx, d4, twin)
-        return {"twin": tw, "report": rep}
-
-    s5, hit = _cached(cache, "5_appearance", digest(base_key, s4["cam"], twin), stage5)
-    bar.update(1)
-    bar.close()
-    fitted = apply_params(d4, twin=s5["twin"], name=design.name + "_fitted")
-    train_rms = ctx.rms(fitted, ctx.train, s5["twin"])
-    held_rms = ctx.rms(fitted, ctx.held, s5["twin"])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    header = (f"# Fitted by `stereotactip fit-twin` from {len(ctx.frames)} labelled frames "
-              f"({len(ctx.train)} train, {len(ctx.held)} held out).\n"
-              f"# Pin-tip RMS (projected twin vs identified real markers): train {train_rms:.2f} px, "
-              f"held out {held_rms:.2f} px.\n")
-    atomic_write_text(out, header + to_toml(fitted))
-    phys = s23["report"]
-    summary = {
-        "design": design.name, "out": str(out), "frames": len(ctx.frames),
-        "train": [ctx.frames[i].path.name for i in ctx.train], "held_out": [ctx.frames[i].path.name for i in ctx.held],
-        "reference": ctx.frames[ctx.ref].path.name, "camera": s4["report"], "physics": {
-            "values": {k: twin[k] for k in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror")},
-            "sd": phys["sd"], "rms_px_search": phys["rms_px_search"]},
-        "appearance": {"values": {k: s5["twin"][k] for k in ("marker_grey", "marker_shading", "background_grey",
-                                                              "edge_px", "noise_grey", "marker_scale")},
-                       "report": s5["report"]},
-        "residuals": {"train_rms_px": train_rms, "held_out_rms_px": held_rms},
-        "separation_mm": s0["separation_mm"],
-        "fitted_parameters": 1 + len(CAM_KEYS) + 4 + 5, "seconds": time.time() - t0,
-    }
-    atomic_write_json(Path(str(out) + ".fit.json"), summary, indent=1)
-    c = s4["report"]
-    log("camera (value ± 1 sd):")
-    for k in CAM_KEYS:
-        log(f"  {k:12s} {c['values'][k]:10.4f} ± {c['sd'][k]:.4f}")
-    log(f"  reprojection RMS {c['rms_px']:.2f} px over {c['n_obs']} marker observations "
-        f"({'converged' if c['converged'] else 'NOT CONVERGED: ' + c['message']})")
-    log("skin and tap:")
-    log(f"  bending_ratio   {twin['bending_ratio']:.4g} (log10 sd {phys['sd']['log10_bending_ratio']:.3f})")
-    log(f"  depth_offset_mm {twin['depth_offset_mm']:.3f} ± {phys['sd']['depth_offset_mm']:.3f}")
-    log(f"  tilt_frame_deg  {twin['tilt_frame_deg']:.1f} ± {phys['sd']['tilt_frame_deg']:.1f}, "
-        f"second tilt {'mirrored' if twin['tilt_mirror'] else 'as labelled'}")
-    log("appearance: " + ", ".join(f"{k} {v:.3g}" for k, v in summary["appearance"]["values"].items()))
-    log(f"residuals: train {train_rms:.2f} px, held out {held_rms:.2f} px (pin-tip RMS); wrote {out}")
-    if not c["converged"]:
-        log("warning: the camera fit did not converge; the fitted file is a partial result")
-    return summary
-
-
-def register(sub) -> None:
-    p = sub.add_parser("fit-twin", help="fit a monocular TacTip twin (camera, skin, appearance) to labelled real taps")
-    p.add_argument("frames", help="folder (or image) of real frames")
-    p.add_argument("--targets", required=True, help="targets CSV (pose_3 depth mm, pose_4/pose_5 tilt deg)")
-    p.add_argument("--design", default="tactip331", help="monocular design name or TOML path")
-    p.add_argument("--out", required=True, help="fitted design TOML to write")
-    p.add_argument("--skip-unlabelled", action="store_true", help="leave out frames without a targets row "
-                   "(named on the console) instead of refusing them")
-    p.add_argument("--no-progress", action="store_true")
-    p.set_defaults(func=cmd_fit)
-
-
-def cmd_fit(args) -> int:
-    fit_twin(args.frames, args.targets, args.design, Path(args.out), progress=not args.no_progress,
-             skip_unlabelled=args.skip_unlabelled)
-    return 0

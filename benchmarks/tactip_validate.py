@@ -28,7 +28,7 @@ from pipeline.vision.tactip_id import frame_stats, identify_by_reference
 from benchmarks.executor import make_engine, run_cells
 from benchmarks.tactip_fit import CAM_KEYS, FitContext, identify_chain
 from twin.tactip import project_markers, render_frame
-from twin.tapdata import TapDataError
+from benchmarks.tapdata import TapDataError
 
 __all__ = ["validate", "register", "cmd_validate", "ridge_features"]
 

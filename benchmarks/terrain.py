@@ -35,37 +35,25 @@ import zipfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
 from pipeline.errors import UserError
 from pipeline.io.files import write_ply
 from pipeline.geometry.merge import (MOLLIFIER_EPS_MM, OVERLAP_THRESHOLD_MM, grid_points, merge_taps,
-                            tap_points_to_global)
+                                     tap_points_to_global)
 from pipeline.types import HeightMap
+from benchmarks.terrain_regions import REGIONS, plan_scan, region
+from benchmarks.terrain_score import FEATURE_CRITERIA, region_panel, score_region, world_panel
 
-__all__ = ["DESIGN_NAME", "DESIGN_OVERRIDES", "TapJob", "plan_jobs", "run_tap", "score_region",
-           "run_scan", "FEATURE_CRITERIA"]
+__all__ = ["DESIGN_NAME", "DESIGN_OVERRIDES", "TapJob", "plan_jobs", "run_tap", "load_tap", "run_scan"]
 
 DESIGN_NAME = "hexagon217_sep180"               # the paper's "dense markers"
 DESIGN_OVERRIDES = {"skin.thickness_mm": 0.5}   # the paper's terrain sensor: skin 0.5 mm
 GRID_STEP_MM = 0.25                              # output grid, = the mollifier's eps
 MAX_GAP_MM = 2.0                                 # > marker spacing 1.8 mm: no holes between markers
 QUICK_REGIONS = ("drake", "english_channel")     # --quick: two small regions, few taps
-
-# Measurable criteria for "feature resolved" (one table, printed into terrain.json).
-PEAK_TOL_MM = 0.3          # mountains: |recon peak - true peak| (about the paper's Gaussian-peak errors)
-WIDTH_RATIO_RANGE = (0.8, 1.25)   # mountains: recon / true mean width at half height
-CONTRAST_FRACTION = 0.5    # seas/channels: recon land-sea contrast >= 50 % of the reachable contrast
-MIN_CONTRAST_MM = 0.1      # ... and at least 0.1 mm (below that a sea is "barely visible")
-FEATURE_CRITERIA = {
-    "mountains": f"peak height within {PEAK_TOL_MM} mm of the DEM's AND mean width at half height "
-                 f"(per map row, cells above half the row's maximum) within {WIDTH_RATIO_RANGE} of the DEM's",
-    "sea": f"land-sea contrast (90th percentile of land cells - median of sea cells) of the reconstruction "
-           f">= {CONTRAST_FRACTION:.0%} of the reachable truth's (DEM clipped at the tap plane) AND >= {MIN_CONTRAST_MM} mm",
-    "channel": "as 'sea' (the channel's water cells against the land on its shores)",
-}
 
 
 class TerrainScanError(UserError, ValueError):
@@ -116,8 +104,6 @@ def _design():
 def plan_jobs(regions: Sequence[str], out_dir: Path, *, sensor: str, tap_z_mm: float = 0.0,
               step_mm: float = 15.0, seed: int = 0, max_taps: int | None = None) -> dict[str, list[TapJob]]:
     """Tap jobs per region (zigzag order), each with its own output file under ``out_dir/taps``."""
-    from twin.terrain import plan_scan, region
-
     jobs: dict[str, list[TapJob]] = {}
     for key in regions:
         r = region(key)
@@ -218,15 +204,25 @@ def run_tap(job: TapJob) -> str:
     return str(job.path)
 
 
-def load_tap(path: str | Path, key: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 3) and origin (3,) of a tap file; :class:`TerrainScanError` naming the file if it is
-    unreadable, truncated, holds non-finite or misshapen arrays, or (``key`` given) was computed
-    from other inputs."""
+class Tap(NamedTuple):
+    """A finished tap as its file holds it."""
+
+    points_sensor_mm: np.ndarray   # (N, 3) outer-skin points, sensor frame
+    origin_mm: np.ndarray          # (3,) global position of the undeformed skin centre at the bottom of the tap
+    validity: dict | None          # the physics verdict (twin.validity.FrameValidity as a dict: valid,
+    #                                reasons, penetration max/p99, ...), None for the 'ideal' back end
+
+
+def load_tap(path: str | Path, key: str | None = None) -> Tap:
+    """Points, origin and physics verdict of a tap file; :class:`TerrainScanError` naming the file if it is
+    unreadable, truncated, holds non-finite or misshapen arrays or an unreadable verdict, or (``key``
+    given) was computed from other inputs."""
     try:
         # our own handle: np.load leaves a file it opened itself open when the zip is truncated
         with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as f:
             pts, origin = np.asarray(f["points_sensor_mm"]), np.asarray(f["origin_mm"])
             stored = str(f["key"]) if "key" in f.files else None
+            validity_json = str(f["validity_json"]) if "validity_json" in f.files else None
     except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise TerrainScanError(f"tap file {path}: unreadable or truncated ({type(exc).__name__})") from None
     if key is not None and stored != key:
@@ -234,17 +230,11 @@ def load_tap(path: str | Path, key: str | None = None) -> tuple[np.ndarray, np.n
     if (pts.ndim != 2 or pts.shape[1] != 3 or origin.shape != (3,) or pts.dtype.kind != "f"
             or not np.all(np.isfinite(pts)) or not np.all(np.isfinite(origin))):
         raise TerrainScanError(f"tap file {path}: points must be finite (N, 3) and the origin (3,)")
-    return pts, origin
-
-
-def tap_validity(path: str | Path) -> dict | None:
-    """The physics verdict stored with a tap (``twin.validity.FrameValidity`` as a dict: ``valid``,
-    ``reasons``, penetration max/p99, ...), or None for a tap of the 'ideal' back end."""
     try:
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as f:
-            return json.loads(str(f["validity_json"])) if "validity_json" in f.files else None
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        validity = json.loads(validity_json) if validity_json is not None else None
+    except ValueError as exc:
         raise TerrainScanError(f"tap file {path}: unreadable validity record ({type(exc).__name__})") from None
+    return Tap(pts, origin, validity)
 
 
 def _tap_is_done(job: TapJob) -> bool:
@@ -257,148 +247,96 @@ def _tap_is_done(job: TapJob) -> bool:
     return True
 
 
-# ----- scoring ------------------------------------------------------------------------------
+# ----- the experiment -----------------------------------------------------------------------
 
-def _half_height_width(z: np.ndarray, min_peak_mm: float = 0.5) -> float:
-    """Mean over rows (rows whose max exceeds ``min_peak_mm``) of the cell count above half the row max."""
-    widths = []
-    for row in z:
-        if not np.any(np.isfinite(row)):
-            continue
-        m = np.nanmax(row)
-        if m > min_peak_mm:
-            widths.append(np.sum(row > m / 2))
-    return float(np.mean(widths)) if widths else float("nan")
-
-
-def _contrast(z: np.ndarray, land: np.ndarray, sea: np.ndarray) -> float:
-    zl, zs = z[land & np.isfinite(z)], z[sea & np.isfinite(z)]
-    if len(zl) == 0 or len(zs) == 0:
-        return float("nan")
-    return float(np.percentile(zl, 90) - np.median(zs))
+def _region_keys(regions: Sequence[str] | str, quick: bool) -> list[str]:
+    """The region keys asked for, each checked against the known regions."""
+    if isinstance(regions, str):
+        keys = (list(QUICK_REGIONS) if quick else list(REGIONS)) if regions == "all" else \
+            [k.strip() for k in regions.split(",") if k.strip()]
+    else:
+        keys = list(regions)
+    for k in keys:
+        region(k)  # validates the name
+    return keys
 
 
-def score_region(key: str, recon: HeightMap, truth: HeightMap, land: np.ndarray, tap_z_mm: float) -> dict[str, Any]:
-    """Metrics of one region on the common grid (global frame, mm).
+def _check_options(sensor: str, tap_z_mm: float) -> None:
+    if sensor not in ("ideal", "twin"):
+        raise TerrainScanError(f"unknown sensor back end {sensor!r} (ideal, twin)")
+    if not (isinstance(tap_z_mm, (int, float)) and math.isfinite(tap_z_mm) and TAP_Z_RANGE_MM[0] <= tap_z_mm
+            < TAP_Z_RANGE_MM[1]):
+        raise TerrainScanError(f"--tap-z {tap_z_mm!r}: must be in [{TAP_Z_RANGE_MM[0]:g}, {TAP_Z_RANGE_MM[1]:g}) mm "
+                               "(from the ocean floor to below the 8 mm approach height)")
 
-    recon, truth : HeightMaps on the same grid; land : (H, W) bool truth land mask on that grid.
-    Errors are over cells where the reconstruction exists (the scanned area inside the box).
-    """
-    from twin.terrain import region
+
+def _run_taps(todo: list[TapJob], n_total: int, *, workers: int | None, engine, progress: bool):
+    """Compute the taps not yet on disk; returns the engine used. Raises naming the taps that failed."""
+    n_reused = n_total - len(todo)
+    if progress or n_reused:
+        import sys
+
+        print(f"[terrain] reusing {n_reused} of {n_total} finished tap(s) (same region, tap, tap plane, sensor, "
+              f"seed, design and tap code); computing {len(todo)}", file=sys.stderr, flush=True)
+    from benchmarks.executor import InlineEngine, LocalEngine, in_cell, run_cells
+
+    if engine is None:
+        engine = InlineEngine() if in_cell() and not workers else \
+            LocalEngine(max(1, min(workers or os.cpu_count() or 1, max(1, len(todo)))))
+    outcomes = run_cells(run_tap, [(j,) for j in todo], engine=engine, desc="terrain taps", progress=progress,
+                         already_done=n_reused)
+    failed = [(j, o.error) for j, o in zip(todo, outcomes) if not o.ok]
+    if failed:  # every other tap is on disk: a rerun computes only these
+        raise TerrainScanError(f"{len(failed)} of {len(todo)} tap(s) failed (the others are kept for a resumed run): "
+                               + "; ".join(f"{j.region}#{j.index}: {(e or '').splitlines()[0]}" for j, e in failed))
+    return engine
+
+
+def _physics_health(verdicts: list[dict | None]) -> dict[str, Any]:
+    """A region with a tap whose skin passed into the relief, did not settle or drew MuJoCo warnings is
+    marked invalid (and kept out of the scan's scores by the experiment)."""
+    checked = [v for v in verdicts if v is not None]
+    bad = [v for v in checked if not v.get("valid", False)]
+    return dict(physics_checked=bool(checked), n_taps_invalid=len(bad), physics_valid=not bad,
+                penetration_max_mm=max((float(v.get("penetration_max_mm") or 0.0) for v in checked),
+                                       default=float("nan")),
+                invalid_reasons=sorted({r for v in bad for r in v.get("reasons", [])}))
+
+
+def _region_result(out: Path, key: str, js: list[TapJob], tmap, tap_z_mm: float) -> dict[str, Any]:
+    """Merge a region's taps, grid and score them against the DEM, write its height map, points and figure."""
+    from twin.terrain import lat_from_y_mm, lon_from_x_mm
 
     r = region(key)
-    zr, zt = recon.z_mm, truth.z_mm
-    reach = np.maximum(zt, tap_z_mm)
-    ok = np.isfinite(zr)
-    err, err_reach = zr[ok] - zt[ok], zr[ok] - reach[ok]
-    out: dict[str, Any] = {
-        "name": r.name, "kind": r.kind, "box_deg": [r.lat_min, r.lat_max, r.lon_min, r.lon_max],
-        "box_mm": [round(v, 3) for v in r.box_mm()],
-        "covered_fraction": float(ok.mean()),
-        "rms_err_mm": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
-        "max_abs_err_mm": float(np.max(np.abs(err))) if err.size else float("nan"),
-        "rms_err_reachable_mm": float(np.sqrt(np.mean(err_reach**2))) if err.size else float("nan"),
-        "max_abs_err_reachable_mm": float(np.max(np.abs(err_reach))) if err.size else float("nan"),
-        "true_max_mm": float(np.nanmax(zt)), "recon_max_mm": float(np.nanmax(zr)) if ok.any() else float("nan"),
-    }
-    if r.kind == "mountains":
-        peak_err = out["recon_max_mm"] - out["true_max_mm"]
-        zt_cov = np.where(ok, zt, np.nan)
-        w_true, w_rec = _half_height_width(zt_cov), _half_height_width(zr)
-        ratio = w_rec / w_true if w_true > 0 else float("nan")
-        out.update(peak_err_mm=float(peak_err), half_height_width_ratio=float(ratio),
-                   resolved=bool(abs(peak_err) <= PEAK_TOL_MM and WIDTH_RATIO_RANGE[0] <= ratio <= WIDTH_RATIO_RANGE[1]))
-    else:
-        sea = ~land
-        c_true = _contrast(np.where(ok, reach, np.nan), land, sea)
-        c_rec = _contrast(zr, land, sea)
-        floor_err = float(np.median((zr - zt)[sea & ok])) if np.any(sea & ok) else float("nan")
-        out.update(contrast_reachable_mm=c_true, contrast_recon_mm=c_rec, sea_floor_err_mm=floor_err,
-                   resolved=bool(np.isfinite(c_rec) and c_rec >= CONTRAST_FRACTION * c_true and c_rec >= MIN_CONTRAST_MM))
-    return out
+    taps, verdicts = [], []
+    for j in js:
+        tap = load_tap(j.path, key=j.key())
+        taps.append(tap_points_to_global(tap.points_sensor_mm, tap.origin_mm))
+        verdicts.append(tap.validity)
+    merged = merge_taps(taps, threshold_mm=OVERLAP_THRESHOLD_MM, eps_mm=MOLLIFIER_EPS_MM)
+    x0, x1, y0, y1 = r.box_mm()
+    xs = np.arange(x0, x1 + 1e-9, GRID_STEP_MM)
+    ys = np.arange(y0, y1 + 1e-9, GRID_STEP_MM)
+    recon = grid_points(merged.points_mm, xs, ys, max_gap_mm=MAX_GAP_MM)
+    X, Y = np.meshgrid(xs, ys)
+    truth = HeightMap(xs, ys, tmap.sample_z_mm(X, Y, frame="global"))
+    li = np.clip(np.searchsorted(tmap.lat_deg, lat_from_y_mm(Y)), 0, len(tmap.lat_deg) - 1)
+    lj = np.clip(np.searchsorted(tmap.lon_deg, lon_from_x_mm(X)), 0, len(tmap.lon_deg) - 1)
+    land = tmap.land[li, lj]
+    metrics = score_region(key, recon, truth, land, tap_z_mm)
+    metrics.update(_physics_health(verdicts))
+    metrics.update(n_taps=len(js), n_points_raw=int(len(merged.selection.points_mm)),
+                   n_points_merged=int(len(merged.points_mm)),
+                   n_overlap_points=int(merged.selection.overlap.sum()))
+    recon.save_npz(out / f"{key}_height.npz")
+    write_ply(out / f"{key}_points.ply", merged.points_mm,
+              comment="StereoTacTip terrain scan, global frame (z = 0 at sea level), mm")
+    centres = np.array([j.centre_mm for j in js])
+    region_panel(out / f"{key}.png", f"{r.name}: {len(js)} taps, RMS {metrics['rms_err_mm']:.2f} mm "
+                 f"(reachable {metrics['rms_err_reachable_mm']:.2f} mm), resolved: {metrics['resolved']}",
+                 truth, recon, centres)
+    return {"metrics": metrics, "recon": recon}
 
-
-# ----- outputs ------------------------------------------------------------------------------
-
-def _panel(path: Path, title: str, truth: HeightMap, recon: HeightMap, centres: np.ndarray | None = None) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ext = [truth.x_mm[0], truth.x_mm[-1], truth.y_mm[0], truth.y_mm[-1]]
-    vmin, vmax = float(np.nanmin(truth.z_mm)), max(float(np.nanmax(truth.z_mm)), 0.1)
-    err = recon.z_mm - truth.z_mm
-    emax = max(float(np.nanmax(np.abs(err))) if np.any(np.isfinite(err)) else 0.1, 0.1)
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.4), constrained_layout=True)
-    for ax, z, t, cmap, lim in ((axes[0], truth.z_mm, "DEM truth (global z, mm)", "terrain", (vmin, vmax)),
-                                (axes[1], recon.z_mm, "reconstruction (mm)", "terrain", (vmin, vmax)),
-                                (axes[2], err, "reconstruction - truth (mm)", "RdBu_r", (-emax, emax))):
-        im = ax.imshow(z, origin="lower", extent=ext, cmap=cmap, vmin=lim[0], vmax=lim[1], aspect="equal")
-        ax.set_title(t)
-        ax.set_xlabel("x (mm)")
-        fig.colorbar(im, ax=ax, shrink=0.8)
-        if centres is not None and ax is axes[1]:
-            ax.plot(centres[:, 0], centres[:, 1], "k.-", lw=0.6, ms=3)
-    axes[0].set_ylabel("y (mm)")
-    fig.suptitle(title)
-    from pipeline.io.atomic import savefig_atomic
-
-    try:
-        savefig_atomic(fig, path, dpi=110)
-    finally:
-        plt.close(fig)
-
-
-def _world_panel(path: Path, tmap, results: dict[str, dict]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
-
-    hm = tmap.height_map(frame="global")
-    s = 4
-    fig, axes = plt.subplots(2, 1, figsize=(12, 12.5), constrained_layout=True)
-    vmin, vmax = -2.0, float(np.max(hm.z_mm))
-    ext = [0, 320, 0, 160]
-    axes[0].imshow(hm.z_mm[::s, ::s], origin="lower", extent=ext, cmap="terrain", vmin=vmin, vmax=vmax)
-    axes[0].set_title("DEM truth, global frame (z = 0 mm at sea level); scanned regions boxed")
-    canvas = np.full(hm.z_mm[::s, ::s].shape, np.nan)
-    xs, ys = hm.x_mm[::s], hm.y_mm[::s]
-    for key, res in results.items():
-        rec: HeightMap = res["recon"]
-        from scipy.interpolate import RegularGridInterpolator
-
-        jx = np.flatnonzero((xs >= rec.x_mm[0]) & (xs <= rec.x_mm[-1]))
-        iy = np.flatnonzero((ys >= rec.y_mm[0]) & (ys <= rec.y_mm[-1]))
-        if len(jx) and len(iy):
-            f = RegularGridInterpolator((rec.y_mm, rec.x_mm), rec.z_mm, bounds_error=False)
-            Y, X = np.meshgrid(ys[iy], xs[jx], indexing="ij")
-            v = f(np.column_stack([Y.ravel(), X.ravel()])).reshape(Y.shape)
-            sub = canvas[np.ix_(iy, jx)]
-            canvas[np.ix_(iy, jx)] = np.where(np.isfinite(v), v, sub)
-    axes[1].imshow(np.where(np.isfinite(canvas), np.nan, hm.z_mm[::s, ::s]), origin="lower", extent=ext,
-                   cmap="Greys", alpha=0.35, vmin=vmin, vmax=vmax)
-    im = axes[1].imshow(canvas, origin="lower", extent=ext, cmap="terrain", vmin=vmin, vmax=vmax)
-    axes[1].set_title("tactile reconstruction of the scanned regions")
-    for ax in axes:
-        for key, res in results.items():
-            x0, x1, y0, y1 = res["metrics"]["box_mm"]
-            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="r", lw=1))
-            ax.text(x0, y1 + 1, key, color="r", fontsize=7)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-    fig.colorbar(im, ax=axes, shrink=0.5, label="z (mm)")
-    from pipeline.io.atomic import savefig_atomic
-
-    try:
-        savefig_atomic(fig, path, dpi=100)
-    finally:
-        plt.close(fig)
-
-
-# ----- the experiment -----------------------------------------------------------------------
 
 def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", sensor: str = "ideal",
              quick: bool = False, workers: int | None = None, tap_z_mm: float = 0.0, seed: int = 0,
@@ -413,90 +351,23 @@ def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", senso
     the scan then raises naming the failed taps, and a rerun computes only those.
     ``setup``: the :class:`benchmarks.estimated.SensorSetup` of the 'twin' back end (None: the twin's exact sensor).
     """
-    from twin.terrain import REGIONS, load_terrain_map, region
+    from twin.terrain import load_terrain_map
 
     t_start = time.perf_counter()
     out = Path(out_dir)
     (out / "taps").mkdir(parents=True, exist_ok=True)
-    if isinstance(regions, str):
-        keys = (list(QUICK_REGIONS) if quick else list(REGIONS)) if regions == "all" else \
-            [k.strip() for k in regions.split(",") if k.strip()]
-    else:
-        keys = list(regions)
-    for k in keys:
-        region(k)  # validates the name
-    if sensor not in ("ideal", "twin"):
-        raise TerrainScanError(f"unknown sensor back end {sensor!r} (ideal, twin)")
-    if not (isinstance(tap_z_mm, (int, float)) and math.isfinite(tap_z_mm) and TAP_Z_RANGE_MM[0] <= tap_z_mm
-            < TAP_Z_RANGE_MM[1]):
-        raise TerrainScanError(f"--tap-z {tap_z_mm!r}: must be in [{TAP_Z_RANGE_MM[0]:g}, {TAP_Z_RANGE_MM[1]:g}) mm "
-                               "(from the ocean floor to below the 8 mm approach height)")
+    keys = _region_keys(regions, quick)
+    _check_options(sensor, tap_z_mm)
     jobs = plan_jobs(keys, out, sensor=sensor, tap_z_mm=tap_z_mm, seed=seed, max_taps=4 if quick else None)
     if setup is not None and sensor == "twin":
         jobs = {k: [dataclasses.replace(j, setup=setup) for j in js] for k, js in jobs.items()}
     todo = [j for js in jobs.values() for j in js if not _tap_is_done(j)]
     n_total = sum(len(js) for js in jobs.values())
-    n_reused = n_total - len(todo)
-    if progress or n_reused:
-        import sys
-
-        print(f"[terrain] reusing {n_reused} of {n_total} finished tap(s) (same region, tap, tap plane, sensor, "
-              f"seed, design and tap code); computing {len(todo)}", file=sys.stderr, flush=True)
-    from benchmarks.executor import InlineEngine, LocalEngine, in_cell, run_cells
-
-    if engine is None:
-        engine = InlineEngine() if in_cell() and not workers else \
-            LocalEngine(max(1, min(workers or os.cpu_count() or 1, max(1, len(todo)))))
-    workers = engine.workers
-    outcomes = run_cells(run_tap, [(j,) for j in todo], engine=engine, desc="terrain taps", progress=progress,
-                         already_done=n_reused)
-    failed = [(j, o.error) for j, o in zip(todo, outcomes) if not o.ok]
-    if failed:  # every other tap is on disk: a rerun computes only these
-        raise TerrainScanError(f"{len(failed)} of {len(todo)} tap(s) failed (the others are kept for a resumed run): "
-                               + "; ".join(f"{j.region}#{j.index}: {(e or '').splitlines()[0]}" for j, e in failed))
+    engine = _run_taps(todo, n_total, workers=workers, engine=engine, progress=progress)
 
     tmap = load_terrain_map()
-    results: dict[str, dict] = {}
-    for key, js in jobs.items():
-        r = region(key)
-        taps, verdicts = [], []
-        for j in js:
-            pts, origin = load_tap(j.path, key=j.key())
-            taps.append(tap_points_to_global(pts, origin))
-            verdicts.append(tap_validity(j.path))
-        merged = merge_taps(taps, threshold_mm=OVERLAP_THRESHOLD_MM, eps_mm=MOLLIFIER_EPS_MM)
-        x0, x1, y0, y1 = r.box_mm()
-        xs = np.arange(x0, x1 + 1e-9, GRID_STEP_MM)
-        ys = np.arange(y0, y1 + 1e-9, GRID_STEP_MM)
-        recon = grid_points(merged.points_mm, xs, ys, max_gap_mm=MAX_GAP_MM)
-        X, Y = np.meshgrid(xs, ys)
-        truth = HeightMap(xs, ys, tmap.sample_z_mm(X, Y, frame="global"))
-        from twin.terrain import lat_from_y_mm, lon_from_x_mm
-
-        li = np.clip(np.searchsorted(tmap.lat_deg, lat_from_y_mm(Y)), 0, len(tmap.lat_deg) - 1)
-        lj = np.clip(np.searchsorted(tmap.lon_deg, lon_from_x_mm(X)), 0, len(tmap.lon_deg) - 1)
-        land = tmap.land[li, lj]
-        metrics = score_region(key, recon, truth, land, tap_z_mm)
-        # physics health of the region's taps: a region with a tap whose skin passed into the relief, did not
-        # settle or drew MuJoCo warnings is marked invalid and kept out of the scan's scores
-        checked = [v for v in verdicts if v is not None]
-        bad = [v for v in checked if not v.get("valid", False)]
-        metrics.update(physics_checked=bool(checked), n_taps_invalid=len(bad), physics_valid=not bad,
-                       penetration_max_mm=max((float(v.get("penetration_max_mm") or 0.0) for v in checked),
-                                              default=float("nan")),
-                       invalid_reasons=sorted({r for v in bad for r in v.get("reasons", [])}))
-        metrics.update(n_taps=len(js), n_points_raw=int(len(merged.selection.points_mm)),
-                       n_points_merged=int(len(merged.points_mm)),
-                       n_overlap_points=int(merged.selection.overlap.sum()))
-        recon.save_npz(out / f"{key}_height.npz")
-        write_ply(out / f"{key}_points.ply", merged.points_mm,
-                  comment="StereoTacTip terrain scan, global frame (z = 0 at sea level), mm")
-        centres = np.array([j.centre_mm for j in js])
-        _panel(out / f"{key}.png", f"{r.name}: {len(js)} taps, RMS {metrics['rms_err_mm']:.2f} mm "
-               f"(reachable {metrics['rms_err_reachable_mm']:.2f} mm), resolved: {metrics['resolved']}",
-               truth, recon, centres)
-        results[key] = {"metrics": metrics, "recon": recon}
-    _world_panel(out / "world.png", tmap, results)
+    results = {key: _region_result(out, key, js, tmap, tap_z_mm) for key, js in jobs.items()}
+    world_panel(out / "world.png", tmap, results)
 
     from benchmarks.results import git_commit
 
@@ -507,8 +378,8 @@ def run_scan(out_dir: str | Path, *, regions: Sequence[str] | str = "all", senso
         "tap_plane_z_mm": tap_z_mm, "approach_z_mm": 8.0, "step_mm": 15.0,
         "overlap_threshold_mm": OVERLAP_THRESHOLD_MM, "mollifier_eps_mm": MOLLIFIER_EPS_MM,
         "terrain_source": tmap.source, "criteria": FEATURE_CRITERIA,
-        "n_taps": n_total, "n_taps_run_now": len(todo), "n_taps_reused": n_reused, "workers": workers,
-        "engine": engine.describe(),
+        "n_taps": n_total, "n_taps_run_now": len(todo), "n_taps_reused": n_total - len(todo),
+        "workers": engine.workers, "engine": engine.describe(),
         "wall_time_s": time.perf_counter() - t_start,
         "regions": {k: v["metrics"] for k, v in results.items()},
     }

@@ -16,6 +16,7 @@ import pytest
 
 from benchmarks import registry as reg
 from benchmarks import results as res
+from benchmarks import thresholds as gate
 from benchmarks.registry import Context, Finding, PaperValue, Result, register
 from benchmarks.report import render_report, write_report
 from benchmarks.sweep import Cell, make_cells, run_sweep
@@ -135,51 +136,51 @@ def _thresholds_file(tmp_path, text):
 
 def test_check_flags_out_of_bounds_missing_and_failed(toy, tmp_path):
     rec = res.execute(toy, Context(out_dir=tmp_path, quick=True, progress=False))
-    th = res.load_thresholds(_thresholds_file(tmp_path, """
+    th = gate.load_thresholds(_thresholds_file(tmp_path, """
 [toy]
 mean = { min = 0.45, max = 0.55, measured = 0.5, why = "5 sigma" }
 skin_mm = { max = 0.9, why = "deliberately violated" }
 absent = { min = 0, why = "metric the run does not report" }
 """))
-    vs = res.check({"toy": rec}, th)
+    vs = gate.check({"toy": rec}, th)
     assert {(v.metric, v.reason) for v in vs} == {("skin_mm", "out of bounds: sanity tier (collapse)"),
                                                   ("absent", "metric missing")}
     text = str(next(v for v in vs if v.metric == "skin_mm"))
     assert "toy.skin_mm" in text and "<= 0.9" in text and "value 1" in text
-    assert [v.reason for v in res.check({}, th, experiments=["toy"])][0] == "experiment did not run"
+    assert [v.reason for v in gate.check({}, th, experiments=["toy"])][0] == "experiment did not run"
     failed = dict(rec, status="error", error="boom")
-    assert all("status" in v.reason for v in res.check({"toy": failed}, th))
+    assert all("status" in v.reason for v in gate.check({"toy": failed}, th))
     full = dict(rec, quick=False)
-    assert all("full run" in v.reason for v in res.check({"toy": full}, th))
+    assert all("full run" in v.reason for v in gate.check({"toy": full}, th))
 
 
 def test_golden_tier_catches_a_regression_the_sanity_tier_lets_through(toy, tmp_path):
     """The toy's mean is about 0.5: inside a loose sanity bound, outside a golden bound set from another value."""
     rec = res.execute(toy, Context(out_dir=tmp_path, quick=True, progress=False))
     assert rec["metrics"]["mean"]["value"] == pytest.approx(0.5, abs=0.05)
-    ok = res.load_thresholds(_thresholds_file(tmp_path, """
+    ok = gate.load_thresholds(_thresholds_file(tmp_path, """
 [toy]
 mean = { min = 0.1, max = 0.9, golden_min = 0.4, golden_max = 0.6, kind = "deterministic", measured = 0.5, why = "x" }
 """))
-    assert res.check({"toy": rec}, ok) == []
-    drifted = res.load_thresholds(_thresholds_file(tmp_path, """
+    assert gate.check({"toy": rec}, ok) == []
+    drifted = gate.load_thresholds(_thresholds_file(tmp_path, """
 [toy]
 mean = { min = 0.1, max = 0.9, golden_min = 0.31, golden_max = 0.4, kind = "deterministic", measured = 0.4, why = "x" }
 """))
-    (v,) = res.check({"toy": rec}, drifted)
+    (v,) = gate.check({"toy": rec}, drifted)
     assert "golden tier" in v.reason and "golden >= 0.31 and <= 0.4" in str(v) and "value 0.49" in str(v)
-    collapsed = res.load_thresholds(_thresholds_file(tmp_path, """
+    collapsed = gate.load_thresholds(_thresholds_file(tmp_path, """
 [toy]
 mean = { max = 0.45, golden_max = 0.45, kind = "exact", measured = 0.45, why = "x" }
 """))
-    (v,) = res.check({"toy": rec}, collapsed)
+    (v,) = gate.check({"toy": rec}, collapsed)
     assert "sanity tier" in v.reason and "<= 0.45" in str(v)
 
 
 def test_mode_tables_apply_only_to_records_of_their_calibration_mode(toy, tmp_path):
     rec = res.execute(toy, Context(out_dir=tmp_path, quick=True, progress=False))
     assert rec["calibration"]["mode"] == "oracle"
-    th = res.load_thresholds(_thresholds_file(tmp_path, """
+    th = gate.load_thresholds(_thresholds_file(tmp_path, """
 [toy]
 mean = { min = 0.4, why = "both modes" }
 [toy.estimated]
@@ -188,10 +189,10 @@ mean = { min = 0.9, why = "estimated records only" }
 skin_mm = { max = 0.9, why = "oracle records only" }
 """))
     assert set(th["toy"]) == {"mean", "estimated.mean", "oracle.skin_mm"}
-    (v,) = res.check({"toy": rec}, th)
+    (v,) = gate.check({"toy": rec}, th)
     assert v.metric == "skin_mm (oracle)"
     est = dict(rec, calibration=dict(rec["calibration"], mode="estimated"))
-    (v,) = res.check({"toy": est}, th)
+    (v,) = gate.check({"toy": est}, th)
     assert v.metric == "mean (estimated)" and ">= 0.9" in v.threshold
 
 
@@ -216,7 +217,7 @@ def test_golden_bounds_keep_their_own_rule(tmp_path, spec, match):
     if "max = 0.55" in spec:
         text = f"[toy]\nmean = {{ {spec}, why = 'x' }}\n"
     with pytest.raises(res.ResultsError, match=match):
-        res.load_thresholds(_thresholds_file(tmp_path, text))
+        gate.load_thresholds(_thresholds_file(tmp_path, text))
 
 
 @pytest.mark.parametrize("text, match", [
@@ -229,18 +230,18 @@ def test_golden_bounds_keep_their_own_rule(tmp_path, spec, match):
 ])
 def test_malformed_thresholds_are_user_errors(tmp_path, text, match):
     with pytest.raises(res.ResultsError, match=match):
-        res.load_thresholds(_thresholds_file(tmp_path, text))
+        gate.load_thresholds(_thresholds_file(tmp_path, text))
 
 
 def test_cli_bench_check_exit_status_and_message(toy, tmp_path, monkeypatch, capsys):
     good = _thresholds_file(tmp_path, "[toy]\nmean = { min = 0.4, max = 0.6, why = 'x' }\n")
-    monkeypatch.setattr(res, "thresholds_path", lambda: good)
+    monkeypatch.setattr(gate, "thresholds_path", lambda: good)
     out = tmp_path / "out"
     assert main(["bench", "toy", "--quick", "--check", "--out", str(out), "--no-progress"]) == 0
     bad = tmp_path / "bad"
     bad.mkdir()
     bad_file = _thresholds_file(bad, "[toy]\nmean = { min = 0.9, why = 'regression on purpose' }\n")
-    monkeypatch.setattr(res, "thresholds_path", lambda: bad_file)
+    monkeypatch.setattr(gate, "thresholds_path", lambda: bad_file)
     capsys.readouterr()
     assert main(["bench", "toy", "--quick", "--check", "--out", str(out), "--no-progress"]) == 1
     printed = capsys.readouterr().out
@@ -264,7 +265,7 @@ def test_cli_param_and_set_reach_the_experiment(toy, tmp_path):
 def test_report_has_paper_table_findings_gate_and_figures(toy, tmp_path, monkeypatch):
     res.execute(toy, Context(out_dir=tmp_path, quick=True, progress=False))
     th = _thresholds_file(tmp_path / "..", "[toy]\nmean = { min = 0.99, why = 'x' }\n")
-    monkeypatch.setattr(res, "thresholds_path", lambda: th)
+    monkeypatch.setattr(gate, "thresholds_path", lambda: th)
     path = write_report(tmp_path)
     text = path.read_text()
     assert "## Paper figure vs this run" in text
@@ -320,7 +321,7 @@ def test_sweep_is_resumable_and_tabulated(toy, tmp_path, monkeypatch):
 # ----- the registry walk -----------------------------------------------------------------------
 
 EXPERIMENTS = reg.all_experiments()
-THRESHOLDS = res.load_thresholds()
+THRESHOLDS = gate.load_thresholds()
 
 
 def test_thresholds_file_names_only_registered_experiments_and_declared_metrics():
@@ -448,7 +449,7 @@ def test_binary_thresholds_file_is_a_user_error(tmp_path):
     p = tmp_path / "t.toml"
     p.write_bytes(b"\xff\xfe[toy]\x00")
     with pytest.raises(res.ResultsError, match="thresholds file"):
-        res.load_thresholds(p)
+        gate.load_thresholds(p)
 
 
 def test_readme_gate_figures_are_written_from_the_records(toy, tmp_path, monkeypatch):
@@ -463,7 +464,7 @@ def test_readme_gate_figures_are_written_from_the_records(toy, tmp_path, monkeyp
 mean = { min = 0.1, max = 0.9, golden_min = 0.4, golden_max = 0.6, kind = "deterministic", measured = 0.5, why = "x" }
 skin_mm = { max = 0.5, why = "violated on purpose" }
 """)
-    monkeypatch.setattr(res, "thresholds_path", lambda: th)
+    monkeypatch.setattr(gate, "thresholds_path", lambda: th)
     readme = tmp_path / "README.md"
     readme.write_text(f"# Title\n\nbefore\n\n{README_BEGIN}\nold figures\n{README_END}\n\nafter\n")
     update_readme(readme, out)
@@ -510,7 +511,7 @@ def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy,
                                    overrides={"skin.thickness_mm": 1.5}))
     res.write_record(rec, estimated)
     th = _thresholds_file(tmp_path, "[toy]\nmean = { min = 0.0, why = 'x' }\n")
-    monkeypatch.setattr(res, "thresholds_path", lambda: th)
+    monkeypatch.setattr(gate, "thresholds_path", lambda: th)
     assert main(["report", str(oracle), "--against", str(estimated)]) == 0
     text = (oracle / "report.md").read_text()
     assert "## Side by side" in text and "| **toy** | | oracle quick | estimated quick |" in text

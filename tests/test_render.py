@@ -1,4 +1,4 @@
-"""The twin's stereo renderer (twin/render.py) against the math it must obey.
+"""The twin's stereo renderer (twin/render/) against the math it must obey.
 
 * render-versus-math: rendered marker centroids land where ``true_calibration`` + ``project_exact`` say;
 * per-vertex refraction versus a per-pixel ray-traced reference of whole marker bodies;

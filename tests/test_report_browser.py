@@ -34,7 +34,7 @@ from benchmarks import registry as reg
 from benchmarks import results as res
 from benchmarks.registry import Context, PaperValue, register
 from benchmarks.report import write_report
-from benchmarks.report_html import Chromium, find_chromium
+from benchmarks.browser import Chromium, find_chromium
 from benchmarks.sweep import make_cells, run_sweep
 
 ON_CI = os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")

@@ -191,7 +191,7 @@ needs_real = pytest.mark.skipif(not HAVE_REAL, reason=f"real TacTip frames not f
 
 @needs_real
 def test_bad_tap_inputs_give_clear_errors(tmp_path, design):
-    from twin.tapdata import TapDataError, load_tap_frames
+    from benchmarks.tapdata import TapDataError, load_tap_frames
 
     with pytest.raises(TapDataError, match="no row"):
         load_tap_frames(DATA, TARGETS, design)                    # the raw frame has no label

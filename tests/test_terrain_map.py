@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.types import DataError
+from benchmarks import terrain_regions as TR
 from twin import terrain as T
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -171,7 +172,7 @@ def test_load_etopo_errors_name_the_file(tmp_path, kind):
 
 def test_plan_scan_zigzag_covers_box():
     box = (100.0, 140.0, 50.0, 80.0)
-    c = T.plan_scan(box)
+    c = TR.plan_scan(box)
     xs, ys = np.unique(c[:, 0]), np.unique(c[:, 1])
     assert len(xs) == 3 and len(ys) == 2 and len(c) == 6
     np.testing.assert_allclose(np.diff(xs), 15.0)
@@ -183,22 +184,22 @@ def test_plan_scan_zigzag_covers_box():
     g = np.stack(np.meshgrid(np.linspace(100, 140, 41), np.linspace(50, 80, 31)), -1).reshape(-1, 2)
     d = np.min(np.linalg.norm(g[:, None] - c[None], axis=2), axis=1)
     assert d.max() <= 15.0 / np.sqrt(2) + 1e-9
-    assert len(T.plan_scan((0, 5, 0, 5))) == 1
+    assert len(TR.plan_scan((0, 5, 0, 5))) == 1
     with pytest.raises(DataError):
-        T.plan_scan((5, 0, 0, 5))
+        TR.plan_scan((5, 0, 0, 5))
 
 
 def test_regions_are_the_papers_nine(tmap):
-    assert len(T.REGIONS) == 9
-    for r in T.REGIONS.values():
+    assert len(TR.REGIONS) == 9
+    for r in TR.REGIONS.values():
         x0, x1, y0, y1 = r.box_mm()
         assert 0 <= x0 < x1 <= 320 and 0 <= y0 < y1 <= 160
         hm = tmap.crop(r.box_mm())
         has_land = np.any(hm.z_mm > -T.SEA_LEVEL_MM)
         assert has_land, r.key
-    assert np.max(tmap.crop(T.region("himalaya").box_mm()).z_mm) == pytest.approx(np.max(tmap.z_mm) - 2.0)
+    assert np.max(tmap.crop(TR.region("himalaya").box_mm()).z_mm) == pytest.approx(np.max(tmap.z_mm) - 2.0)
     with pytest.raises(DataError, match="atlantis"):
-        T.region("atlantis")
+        TR.region("atlantis")
 
 
 def test_tap_indenter_is_the_relief_in_the_downward_sensor_frame(tmap):

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from benchmarks import terrain as B
+from benchmarks import terrain_score as S
 from twin import terrain as T
 
 # the ideal tap samples the same bilinear relief: sensor frame -> global is exact up to rounding
@@ -53,7 +54,7 @@ def test_quick_scan_outputs_scores_and_resumes(tmp_path):
     assert him["covered_fraction"] > 0.9
     assert him["rms_err_mm"] == pytest.approx(him["rms_err_reachable_mm"], abs=0.05)
     assert him["rms_err_mm"] < 0.4
-    assert abs(him["peak_err_mm"]) <= B.PEAK_TOL_MM
+    assert abs(him["peak_err_mm"]) <= S.PEAK_TOL_MM
     drake = rec["regions"]["drake"]
     # the paper's taps stop at sea level: the flattened sea floor (-2 mm) is never touched, so the
     # reconstructed sea sits exactly 2 mm too high while the reachable error stays small
@@ -99,12 +100,15 @@ def test_a_physically_invalid_tap_marks_its_region_and_leaves_the_scores(tmp_pat
     assert good.metrics["rms_err_mm_mean"][0] == pytest.approx(good.metrics["rms_err_mm_mean_all"][0])
     bad_region = B.QUICK_REGIONS[0]
 
-    def verdict(path):
-        bad = f"/taps/{bad_region}_" in str(path).replace("\\", "/")
-        return {"valid": not bad, "reasons": ["skin 0.500 mm inside the indenter"] if bad else [],
-                "penetration_max_mm": 0.5 if bad else 0.01}
+    load_tap = B.load_tap
 
-    monkeypatch.setattr(B, "tap_validity", verdict)
+    def with_verdict(path, key=None):
+        bad = f"/taps/{bad_region}_" in str(path).replace("\\", "/")
+        return load_tap(path, key)._replace(validity={
+            "valid": not bad, "reasons": ["skin 0.500 mm inside the indenter"] if bad else [],
+            "penetration_max_mm": 0.5 if bad else 0.01})
+
+    monkeypatch.setattr(B, "load_tap", with_verdict)
     ctx = Context(out_dir=tmp_path / "bad", quick=True, progress=False, params={"sensor": "ideal", "workers": 1})
     out = E.run(ctx)
     assert out.metrics["invalid_regions"][0] == 1
@@ -154,9 +158,8 @@ def test_twin_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
     tmap = T.load_terrain_map()
     job = _tap_job("andes", 4, tmp_path)
     B.run_tap(job)
-    pts, origin = B.load_tap(job.path)
+    pts, origin, verdict = B.load_tap(job.path)                    # the pressed frame's physics travels with the tap
     assert len(pts) >= 0.9 * B._design().marker_count              # the pipeline matched (almost) every marker
-    verdict = B.tap_validity(job.path)                              # the pressed frame's physics travels with the tap
     assert {"valid", "reasons", "penetration_max_mm", "settled"} <= set(verdict)
     if verdict["penetration_max_mm"] > 0.05:
         assert not verdict["valid"] and verdict["reasons"]

@@ -153,6 +153,16 @@ def surface_grid(surface, truth, radius_mm: float, step_mm: float = 0.5) -> dict
             "z_ind": interp_heightmap(truth.indenter, xy)}
 
 
+def validity_columns(truth) -> dict:
+    """The twin frame's own physics verdict (twin.validity, recorded in its truth) as cell columns."""
+    v = truth.validity or {}
+    return {"skin_penetration_mm": v.get("penetration_max_mm", float("nan")),
+            "skin_penetration_p99_mm": v.get("penetration_p99_mm", float("nan")),
+            "contact_force_n": v.get("contact_force_n", float("nan")),
+            "physics_valid": bool(v.get("valid", False)),
+            "physics_reasons": list(v.get("reasons", ["no physics validity recorded"]))}
+
+
 def run_press_cells(ctx, out, fn, jobs: list, *, desc: str, params) -> list:
     """Run a grid experiment's presses through the executor; returns the results of the cells that ran.
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from benchmarks.experiments._common import (gaussian_curvature_profile, make_indenter, radial_rms, rms, run_press_cells,
-                                            surface_grid, calibration_note, reconstruct)
+                                            surface_grid, calibration_note, reconstruct, validity_columns)
 from benchmarks.registry import Context, Finding, Result, register, stream_rng
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -219,7 +219,6 @@ def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None
     e_cad = np.where(foot, g["z_rec"] - g["z_ind"], np.nan)
     e_skin = g["z_rec"] - g["z_skin"]
     gap = np.where(foot, g["z_ind"] - g["z_skin"], np.nan)
-    val = truth.validity or {}
     centres, prof = radial_rms(r, e_cad, RADIAL_EDGES_MM)
     curv = gaussian_curvature_profile(centres, H_MM, s2)
     ok = np.isfinite(prof)
@@ -231,9 +230,5 @@ def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None
             "centre_error_mm": rms(e_cad[near]), "conformity_gap_centre_mm": float(np.nanmean(gap[near]))
             if np.any(np.isfinite(gap[near])) else float("nan"),
             "error_curvature_correlation": corr, "footprint_points": int(foot.sum()),
-            "skin_penetration_mm": val.get("penetration_max_mm", float("nan")),
-            "skin_penetration_p99_mm": val.get("penetration_p99_mm", float("nan")),
-            "contact_force_n": val.get("contact_force_n", float("nan")),
-            "physics_valid": bool(val.get("valid", False)),
-            "physics_reasons": list(val.get("reasons", ["no physics validity recorded"]))}
+            **validity_columns(truth)}
     return cell, centres, prof, g, r

@@ -16,6 +16,7 @@ correction is then mapped across the field (vs marker radius).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -72,26 +73,50 @@ def board_markers(design, sensor_from_board: np.ndarray) -> np.ndarray:
 )
 def run(ctx: Context) -> Result:
     """Skin-less marker-board press 0–8 mm: fitted n vs the twin's optics, linear vs exact depth error."""
-    from pipeline.vision.detection import detect_markers
-    from pipeline.vision.dtrc import match_stereo
-    from pipeline.geometry.refraction import correct_exact, correct_linear, fit_refractive_index
-    from pipeline.geometry.triangulation import triangulate
-    from pipeline.types import MarkerMatches
-    from twin.optics import project_exact
-    from twin.render import StereoRenderer
+    from pipeline.geometry.refraction import fit_refractive_index
 
     setup = ctx.sensor_setup(ctx.design("hexagon127"))
-    design, calib, built = setup.design, setup.calib, setup.twin_design   # pipeline's drawing; the twin's build
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(0.0, 2.0, 4.0, 6.0, 8.0))]
     trials = int(ctx.param("trials", TRIALS, quick=2))
     if depths[0] != 0.0:
         depths = [0.0] + depths
+    press = _press_trials(ctx, setup, depths, trials)
+    fit = fit_refractive_index(np.array(press.true_dz), np.array(press.app_dz)) if len(set(press.app_dz)) >= 2 else None
+    implied, implied_app = _implied_by_optics(setup, depths)
+    errors = _depth_errors(setup.design, press.samples, fit.n if fit is not None else implied.n)
+    prof = _radial_profile(errors)
+    out = Result(designs=[setup.design], setups=[setup.provenance])
+    out.notes.append(calibration_note([setup]))
+    _report(out, setup, press, fit, implied, errors, prof, depths, trials)
+    out.figures.append(_plot(ctx, press, fit, implied, implied_app, prof))
+    return out
+
+
+@dataclass
+class _Press:
+    """What the pipeline measured over the press trials."""
+
+    true_dz: list = field(default_factory=list)     # the board's depth change (mm), per sample
+    app_dz: list = field(default_factory=list)      # the triangulated apparent depth change (mm)
+    rows: list = field(default_factory=list)        # the "steps" table
+    matched: list = field(default_factory=list)     # matched fraction per render
+    # per sample at depth > 0: (trial, depth, apparent cloud, exact cloud, truth, and the same at depth 0)
+    samples: list = field(default_factory=list)
+
+
+def _press_trials(ctx: Context, setup, depths: list[float], trials: int) -> _Press:
+    """Render the board at every depth of every trial, detect, match, triangulate (apparent and exact)."""
+    from pipeline.vision.detection import detect_markers
+    from pipeline.vision.dtrc import match_stereo
+    from pipeline.geometry.refraction import correct_exact
+    from pipeline.geometry.triangulation import triangulate
+    from twin.render import StereoRenderer
+
+    design, calib, built = setup.design, setup.calib, setup.twin_design   # pipeline's drawing; the twin's build
     jitter_rng = ctx.rng("refraction/jitter")
     renderer = StereoRenderer(built, rng=ctx.rng("refraction/render"))
     n_markers = design.marker_count
-
-    true_dz, app_dz, rows, matched = [], [], [], []
-    field = []   # per marker, per depth > 0: radius, linear error, exact error
+    press = _Press()
     bar = ctx.bar(total=trials * len(depths), desc="refraction")
     for trial in range(trials):
         dx, dy = jitter_rng.uniform(-JITTER_XY_MM, JITTER_XY_MM, size=2)
@@ -103,7 +128,7 @@ def run(ctx: Context) -> Result:
             frame = renderer.render_board("marker_board", pose, through_stack=True)
             bar.update()
             m = match_stereo(detect_markers(frame.left), detect_markers(frame.right), design)
-            matched.append(len(m.ids) / n_markers)
+            press.matched.append(len(m.ids) / n_markers)
             if len(m.ids) == 0:
                 if d == 0.0:
                     z0_app = None
@@ -118,17 +143,26 @@ def run(ctx: Context) -> Result:
                 continue
             if z0_app is None:
                 continue
-            true_dz.append(d)
-            app_dz.append(z0_app - z_app)         # the board moves toward the cameras (−z): positive change
-            rows.append({"trial": trial, "depth_mm": d, "apparent_dz_mm": z0_app - z_app,
-                         "matched": int(len(m.ids))})
-            field.append((trial, d, app, exact, truth, ref_app, ref_exact, ref_truth))
+            press.true_dz.append(d)
+            press.app_dz.append(z0_app - z_app)         # the board moves toward the cameras (−z): positive change
+            press.rows.append({"trial": trial, "depth_mm": d, "apparent_dz_mm": z0_app - z_app,
+                               "matched": int(len(m.ids))})
+            press.samples.append((trial, d, app, exact, truth, ref_app, ref_exact, ref_truth))
     bar.close()
+    return press
 
-    fit = fit_refractive_index(np.array(true_dz), np.array(app_dz)) if len(set(app_dz)) >= 2 else None
 
-    # What the twin's optics imply, with no image in between: exact projection → pinhole triangulation.
-    ids = np.arange(n_markers)
+def _implied_by_optics(setup, depths: list[float]):
+    """What the twin's optics imply, with no image in between: exact projection → pinhole triangulation.
+
+    Returns the fit and the apparent depth changes it was fitted to."""
+    from pipeline.geometry.refraction import fit_refractive_index
+    from pipeline.geometry.triangulation import triangulate
+    from pipeline.types import MarkerMatches
+    from twin.optics import project_exact
+
+    design, calib, built = setup.design, setup.calib, setup.twin_design
+    ids = np.arange(design.marker_count)
     implied_true, implied_app = [], []
     z0 = None
     for d in depths:
@@ -140,12 +174,24 @@ def run(ctx: Context) -> Result:
             continue
         implied_true.append(d)
         implied_app.append(z0 - z)
-    implied = fit_refractive_index(np.array(implied_true), np.array(implied_app))
+    return fit_refractive_index(np.array(implied_true), np.array(implied_app)), implied_app
 
-    # Depth error across the field: linear (paper Eq. 8 with the fitted n) vs exact ray tracing.
+
+@dataclass
+class _DepthErrors:
+    lin_all: np.ndarray     # depth-change error per marker sample, linear correction (mm)
+    ex_all: np.ndarray      # the same, exact ray tracing
+    lin_r: np.ndarray       # the marker's rest radius of each sample (mm)
+    ex_r: np.ndarray
+    ex_abs: list            # absolute depth error of the exact correction (mm)
+
+
+def _depth_errors(design, field_samples: list, n_lin: float) -> _DepthErrors:
+    """Depth error across the field: linear (paper Eq. 8 with the fitted n) vs exact ray tracing."""
+    from pipeline.geometry.refraction import correct_linear
+
     lin_err, ex_err, ex_abs = [], [], []
-    n_lin = fit.n if fit is not None else implied.n
-    for trial, d, app, exact, truth, ref_app, ref_exact, ref_truth in field:
+    for trial, d, app, exact, truth, ref_app, ref_exact, ref_truth in field_samples:
         lin = correct_linear(app, ref_app, n_lin, design)
         lin_ref = correct_linear(ref_app, ref_app, n_lin, design)
         for cloud, ref, sink in ((lin, lin_ref, lin_err), (exact, ref_exact, ex_err)):
@@ -156,13 +202,29 @@ def run(ctx: Context) -> Result:
             sink.append({int(i): (zi[i] - zr[i]) - (truth[i, 2] - ref_truth[i, 2]) for i in common.tolist()})
         ex_abs.extend((exact.xyz_mm[:, 2] - truth[exact.ids, 2]).tolist())
     r_of = np.hypot(*design.rest_markers_mm()[:, :2].T)
-    lin_all = np.array([v for dct in lin_err for v in dct.values()])
-    ex_all = np.array([v for dct in ex_err for v in dct.values()])
-    lin_r = np.array([r_of[i] for dct in lin_err for i in dct])
-    ex_r = np.array([r_of[i] for dct in ex_err for i in dct])
+    return _DepthErrors(lin_all=np.array([v for dct in lin_err for v in dct.values()]),
+                        ex_all=np.array([v for dct in ex_err for v in dct.values()]),
+                        lin_r=np.array([r_of[i] for dct in lin_err for i in dct]),
+                        ex_r=np.array([r_of[i] for dct in ex_err for i in dct]),
+                        ex_abs=ex_abs)
 
-    out = Result(designs=[design], setups=[setup.provenance])
-    out.notes.append(calibration_note([setup]))
+
+def _radial_profile(e: _DepthErrors) -> list[dict]:
+    """RMS depth-change error per ring of marker radius (:data:`RADIAL_EDGES_MM`)."""
+    edges = RADIAL_EDGES_MM
+    prof = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sl, se = (e.lin_r >= lo) & (e.lin_r < hi), (e.ex_r >= lo) & (e.ex_r < hi)
+        prof.append({"r_lo_mm": lo, "r_hi_mm": hi,
+                     "linear_rms_mm": float(np.sqrt(np.mean(e.lin_all[sl] ** 2))) if sl.any() else None,
+                     "exact_rms_mm": float(np.sqrt(np.mean(e.ex_all[se] ** 2))) if se.any() else None})
+    return prof
+
+
+def _report(out: Result, setup, press: _Press, fit, implied, e: _DepthErrors, prof: list[dict],
+            depths: list[float], trials: int) -> None:
+    """Metrics, tables, notes and findings of the run."""
+    design, built, matched = setup.design, setup.twin_design, press.matched
     out.metric("n_implied_by_optics", implied.n, "1")
     out.metric("matched_fraction_min", min(matched), "1")
     if fit is None:
@@ -173,20 +235,13 @@ def run(ctx: Context) -> Result:
         out.metric("n_fit_r2", fit.r2, "1")
         out.metric("n_fit_intercept_mm", fit.intercept, "mm")
         out.metric("n_fit_minus_implied", fit.n - implied.n, "1")
-    if len(lin_all):
-        out.metric("linear_depth_error_rms_mm", float(np.sqrt(np.mean(lin_all**2))), "mm")
-        out.metric("linear_depth_error_max_mm", float(np.max(np.abs(lin_all))), "mm")
-        out.metric("exact_depth_error_rms_mm", float(np.sqrt(np.mean(ex_all**2))), "mm")
-        out.metric("exact_depth_error_max_mm", float(np.max(np.abs(ex_all))), "mm")
-        out.metric("exact_absolute_error_rms_mm", float(np.sqrt(np.mean(np.square(ex_abs)))), "mm")
-    out.tables["steps"] = rows
-    edges = RADIAL_EDGES_MM
-    prof = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        sl, se = (lin_r >= lo) & (lin_r < hi), (ex_r >= lo) & (ex_r < hi)
-        prof.append({"r_lo_mm": lo, "r_hi_mm": hi,
-                     "linear_rms_mm": float(np.sqrt(np.mean(lin_all[sl] ** 2))) if sl.any() else None,
-                     "exact_rms_mm": float(np.sqrt(np.mean(ex_all[se] ** 2))) if se.any() else None})
+    if len(e.lin_all):
+        out.metric("linear_depth_error_rms_mm", float(np.sqrt(np.mean(e.lin_all**2))), "mm")
+        out.metric("linear_depth_error_max_mm", float(np.max(np.abs(e.lin_all))), "mm")
+        out.metric("exact_depth_error_rms_mm", float(np.sqrt(np.mean(e.ex_all**2))), "mm")
+        out.metric("exact_depth_error_max_mm", float(np.max(np.abs(e.ex_all))), "mm")
+        out.metric("exact_absolute_error_rms_mm", float(np.sqrt(np.mean(np.square(e.ex_abs)))), "mm")
+    out.tables["steps"] = press.rows
     out.tables["depth_error_vs_radius"] = prof
     out.notes.append(f"{trials} trial(s) × depths {depths} mm; per-trial board jitter ±{JITTER_XY_MM} mm in x-y and "
                      f"±{JITTER_TILT_DEG}° tilt; the board face sits at the bare gel's surface z = −T at depth 0.")
@@ -205,6 +260,10 @@ def run(ctx: Context) -> Result:
         out.findings.append(Finding("the displacement ratio is highly linear (paper: fit through the 0–8 mm steps)",
                                     f"R² = {fit.r2:.5f}, intercept {fit.intercept:+.3f} mm", bool(fit.r2 > 0.999)))
 
+
+def _plot(ctx: Context, press: _Press, fit, implied, implied_app: list, prof: list[dict]):
+    """True vs apparent displacement with the fits; depth-change error vs marker radius."""
+    app_dz, true_dz = press.app_dz, press.true_dz
     with paper_style() as plt:
         fig, axes = plt.subplots(1, 2, figsize=(PAGE_IN * 0.8, 2.4))
         a = np.array(app_dz) if app_dz else np.array(implied_app)
@@ -225,5 +284,4 @@ def run(ctx: Context) -> Result:
         axes[1].set_xlabel("marker radius (mm)")
         axes[1].set_ylabel("depth-change error RMS (mm)")
         axes[1].legend()
-        out.figures.append(save_figure(fig, ctx.figure_path("refraction")))
-    return out
+        return save_figure(fig, ctx.figure_path("refraction"))

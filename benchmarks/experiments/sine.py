@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from benchmarks.experiments._common import (identity_correct, make_indenter, reconstruct, rms, run_press_cells,
-                                            surface_grid, calibration_note)
+                                            surface_grid, calibration_note, validity_columns)
 from benchmarks.registry import Context, Finding, Result, register, stream_rng
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -58,16 +58,6 @@ def _penetration(gap: np.ndarray, r: np.ndarray, radius_mm: float) -> float:
     (measured there: up to 2.2 mm on omega = pi/15; inside the disc: none) - not skin the sensor sees."""
     inside = np.isfinite(gap) & (r <= radius_mm)
     return float(np.max(-gap[inside])) if inside.any() else float("nan")
-
-
-def _validity(truth) -> dict:
-    """The twin frame's own physics verdict (twin.validity, recorded in its truth) as cell columns."""
-    v = truth.validity or {}
-    return {"skin_penetration_mm": v.get("penetration_max_mm", float("nan")),
-            "skin_penetration_p99_mm": v.get("penetration_p99_mm", float("nan")),
-            "contact_force_n": v.get("contact_force_n", float("nan")),
-            "physics_valid": bool(v.get("valid", False)),
-            "physics_reasons": list(v.get("reasons", ["no physics validity recorded"]))}
 
 
 @register(
@@ -278,5 +268,5 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
             "valley_gap_mm": float(np.nanmean(gap[valley])) if np.any(valley) else float("nan"),
             "upper_points": int(upper.sum()), "valley_points": int(valley.sum()),
             "skin_penetration_grid_mm": _penetration(gap, g["r"], radius),
-            **_validity(truth)}
+            **validity_columns(truth)}
     return cell, g
