@@ -56,8 +56,10 @@ _BASE_MM = 0.1
 PROUD_TOL_MM = 0.01        # a sphere standing proud of the true surface by more than this is lowered until it does
                            # not (a sphere on a cliff of a letter, normal nearly horizontal, stood 0.375 mm above the
                            # letter's flat top and held the skin off it); the Gaussians' curved tips stay within 0.003
-CLIFF_SLOPE = 10.0         # walls steeper than 84 deg (a letter's extruded sides; the steepest Gaussian and sine
-                           # flanks are below 3.2) get edge spheres along their top
+CLIFF_SLOPE = 5.0          # walls steeper than 79 deg (a letter's extruded sides, a coastline step of the terrain
+                           # relief: 1.5 mm over one 0.2 mm raster cell, slope 7.5, which at 10 got none and was cut
+                           # 0.18 mm deep by a face; the steepest Gaussian and sine flanks are below 3.2) get edge
+                           # spheres along their top
 EDGE_RADIUS_MM = 0.25      # edge spheres: radius r, each placed as low as it can while every surface point within
 EDGE_COVER_MM = 0.1        # this of its centre (horizontally) lies inside it, so the sharp top edge of a cliff is
                            # inside the union of spheres and a skin face lying on them cannot cut it; they stand at
@@ -149,7 +151,11 @@ def surface_spheres(ind: Indenter, *, skin_cell_mm: float, radius_mm: float = SP
             sharp[idx[pr <= PROUD_TOL_MM]] = False
         lower = proud > PROUD_TOL_MM
         centres[lower, 2] -= proud[lower]
-    cliff = ok & (np.hypot(hx, hy) > CLIFF_SLOPE)
+    # cliffs, and crests sharper than the smallest sphere (a one-cell ridge of the terrain raster): where even
+    # the smallest sphere stands proud and is lowered, a face lying on the spheres would be cut by the crest
+    # (English Channel tap: 0.11 mm), so their tops get edge spheres
+    crest = ok & (kappa > 1.0 / min(SHARP_RADII_MM))
+    cliff = ok & ((np.hypot(hx, hy) > CLIFF_SLOPE) | crest)
     if cliff.any():
         edge = _edge_spheres(ind, X, Y, cliff)
         centres = np.vstack([centres, edge])

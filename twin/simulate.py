@@ -55,7 +55,7 @@ def _run(design: SensorDesign, indenter: Indenter, motion: robot.Motion, mesh: M
         "motion": motion.name, "robot_speed_mm_s": robot.ROBOT_SPEED_MM_S, "friction": float(friction),
         "timestamps_s": [t for t, _, _ in res],
         "settle": [{"steps": s.steps, "converged": s.converged, "last_motion_mm": s.last_motion_mm,
-                    "seconds": s.seconds, "direct": s.direct} for _, s, _ in res],
+                    "seconds": s.seconds, "direct": s.direct, "damped_steps": s.damped_steps} for _, s, _ in res],
         "direct_solves": sim.direct_solves, "direct_rejections": sim.direct_rejections,
         "direct_wasted_steps": sim.direct_wasted_steps, "model_from_cache": sim.model_from_cache,
         "build_s": t_build, "physics_s": time.perf_counter() - t0 - t_build, "steps": sim.steps_taken,
