@@ -75,7 +75,7 @@ def test_linear_refraction_relative_to_first_frame():
     assert dz_err[central].max() < 0.04 + E2E_TOL_MM
 
 
-@pytest.mark.xfail(strict=True, reason="DTRC (pipeline/vision/dtrc.py) identifies no marker at all when part of the "
+@pytest.mark.xfail(strict=True, reason="DTRC (pipeline/vision/dtrc/) identifies no marker at all when part of the "
                    "pattern is hidden: 0 of the 67 shown markers here (and 0 of 112 with only x < -9 mm hidden)")
 def test_half_occluded_frame_gives_partial_result():
     design = load_design("hexagon127")

@@ -40,7 +40,7 @@ def test_press_sequence_never_reports_a_wrong_id_and_holds_until_the_pins_crowd(
 @pytest.mark.xfail(strict=True, reason=(
     "KNOWN DEFECT: 0 of 127 identified at 5 mm (with vertex contact, in 0.5 mm steps: from 3.5 mm on). All 127 blobs are "
     "detected and move < 0.2 spacings per 0.5 mm step, so the carried ids are right, but the certainty "
-    "rule (pipeline/vision/identity.py) withdraws them: a few crest markers fail the local-consistency fit "
+    "rule (pipeline/vision/identity/) withdraws them: a few crest markers fail the local-consistency fit "
     "(stretch > MAX_STRETCH), their removal cascades over ~48 markers of the crest band, the two remaining "
     "patches are 'not anchored' (a shift towards the withdrawn band contradicts nothing), and follow() "
     "needs >= 3 certified neighbours in the current frame, so the previous frame cannot restore them"))
