@@ -1,5 +1,9 @@
 """MuJoCo model of the skin module: gel + skin (two volumetric flexes), pins, and a mocap indenter.
 
+Longer than the project's ~400 lines: one class, :class:`SkinSim`, whose build, stepping, settle, direct
+solve, friction (stick) and truth parts share its private model state. Its seams for a split are the mesh
+(``build_mesh``, ``MeshSpec``), the model build, the friction return map, and the direct solve.
+
 Model (built in code with :class:`mujoco.MjSpec` from a :class:`~pipeline.design.SensorDesign`)
 ------------------------------------------------------------------------------------------------
 * One tetrahedral mesh of the disc of radius ``design.gel.radius_mm`` from the outer skin surface

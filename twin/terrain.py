@@ -1,5 +1,8 @@
 """The terrain demonstration's world relief map and the relief under a tap (twin side).
 
+Longer than the project's ~400 lines because the DEM readers (netCDF-3 and HDF5 ETOPO grids, resampling,
+land mask) share the map frame defined below with the relief map itself; the readers are the seam for a split.
+
 Paper, "Experiments III": a 320 x 160 x 9.7 mm printed world relief (land from a DEM, ocean floor
 flattened to -3000 m along the coastline), scanned by a robot tapping a StereoTacTip in a zigzag
 with 15 mm steps over nine regions.
