@@ -14,8 +14,8 @@ from pipeline.vision.dtrc.mesh import OUTLIER_NN_FACTOR, _median, _nn_and_mesh
 from pipeline.vision.dtrc.peel import _peel_flat
 from pipeline.vision.dtrc.prediction import _shift_by_prediction, _verify_and_grow
 from pipeline.vision.dtrc.proposals import _certain_ids
-from pipeline.vision.dtrc.ring_codes import (_code_by_angles, _design_flat, _design_order, _design_rings, _ring_by_angle,
-                                             _shift_code, _unmatched)
+from pipeline.vision.dtrc.ring_codes import (_code_by_angles, _design_flat, _design_order, _design_rings,
+                                             _ring_by_angle, _shift_code, _unmatched)
 from pipeline.vision.identity import R_NO_BLOB, REASONS, use_triangulation
 
 

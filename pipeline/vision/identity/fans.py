@@ -51,8 +51,8 @@ def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pit
     :func:`use_triangulation`; nothing else touches ``b``, outside the pattern included).
 
     Returns 1 (intact), 0 (not), or :data:`_NEED_SEARCH` when only the blob search of the emptiness
-    test is left and ``search`` (blob searches allowed) is False. ``ring``, ``near``, ``near_d2``: work arrays (fan width,
-    and >= :data:`FAN_QUERY`)."""
+    test is left and ``search`` (blob searches allowed) is False. ``ring``, ``near``, ``near_d2``:
+    work arrays (fan width, and >= :data:`FAN_QUERY`)."""
     K = fan.shape[1]
     if fan[s, 0] < 0:
         return 0
