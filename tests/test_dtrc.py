@@ -324,12 +324,26 @@ def test_compiled_kernels_match_their_numpy_definitions():
         np.testing.assert_allclose(got[1:], (theta + m[got[0]], np.max(np.abs(dev[got[0]]))), atol=1e-12)
 
 
-def _affine_reference(query_xy, ref_xy, ref_px, k=8, exclude_self=False):
-    """The numpy definition of the affine prediction: cKDTree neighbours, batched least squares."""
-    from scipy.spatial import cKDTree
+def _order_reference(pts, x, y, candidates, k):
+    """The defined neighbour order by brute force: the ``k`` of ``candidates`` (indices into ``pts``)
+    nearest to (x, y), ascending squared distance ``dx * dx + dy * dy``, ties to the lower index."""
+    c = np.asarray(candidates, np.int64)
+    dx, dy = pts[c, 0] - x, pts[c, 1] - y
+    d2 = dx * dx + dy * dy
+    o = np.lexsort((c, d2))[:k]
+    return c[o], d2[o]
 
-    kk = min(k + int(exclude_self), len(ref_xy))
-    nb = cKDTree(ref_xy).query(query_xy, k=kk)[1].reshape(len(query_xy), -1)[:, int(exclude_self):]
+
+def _affine_reference(query_ids, ref_ids, ref_px, xy_d, k=8, exclude_self=False):
+    """The numpy definition of the affine prediction: the k nearest coded design slots in (distance,
+    design index) order, batched least squares."""
+    row_of = {int(j): r for r, j in enumerate(ref_ids)}
+    nb = []
+    for s in query_ids:
+        cand = [j for j in ref_ids if not (exclude_self and j == s)]
+        nb.append([row_of[int(j)] for j in _order_reference(xy_d, xy_d[s, 0], xy_d[s, 1], cand, k)[0]])
+    nb = np.array(nb, np.int64)
+    ref_xy, query_xy = xy_d[ref_ids], xy_d[query_ids]
     X = np.concatenate([ref_xy[nb], np.ones(nb.shape + (1,))], axis=2)
     XtX = np.einsum("qki,qkj->qij", X, X) + 1e-9 * np.eye(3)
     A = np.linalg.solve(XtX, np.einsum("qki,qkj->qij", X, ref_px[nb]))
@@ -338,14 +352,12 @@ def _affine_reference(query_xy, ref_xy, ref_px, k=8, exclude_self=False):
 
 
 def _verify_and_grow_reference(pts, ids, active, xy_d, pitch_mm, max_rounds):
-    from scipy.spatial import cKDTree
-
     from pipeline.vision.dtrc import PREDICT_GATE
 
     gate, removed = PREDICT_GATE * pitch_mm, 0
     coded = np.nonzero(ids >= 0)[0]
     if len(coded) >= 4:
-        pred, sc = _affine_reference(xy_d[ids[coded]], xy_d[ids[coded]], pts[coded], exclude_self=True)
+        pred, sc = _affine_reference(ids[coded], ids[coded], pts[coded], xy_d, exclude_self=True)
         bad = np.linalg.norm(pred - pts[coded], axis=1) > gate * sc
         ids[coded[bad]] = -1
         removed = int(bad.sum())
@@ -355,9 +367,13 @@ def _verify_and_grow_reference(pts, ids, active, xy_d, pitch_mm, max_rounds):
         cand = np.nonzero(active & (ids < 0))[0]
         if len(coded) < 4 or len(free) == 0 or len(cand) == 0:
             break
-        pred, sc = _affine_reference(xy_d[free], xy_d[ids[coded]], pts[coded])
-        d, j = cKDTree(pts[cand]).query(pred)
-        ok = (d <= gate * sc) & (cKDTree(pred).query(pts[cand[j]])[1] == np.arange(len(free)))
+        pred, sc = _affine_reference(free, ids[coded], pts[coded], xy_d)
+        cand_px = pts[cand]
+        near = [_order_reference(cand_px, p[0], p[1], np.arange(len(cand)), 1) for p in pred]
+        j = np.array([i[0] for i, _ in near])
+        d = np.sqrt([d2[0] for _, d2 in near])
+        back = np.array([_order_reference(pred, p[0], p[1], np.arange(len(pred)), 1)[0][0] for p in cand_px[j]])
+        ok = (d <= gate * sc) & (back == np.arange(len(free)))
         if not ok.any():
             break
         ids[cand[j[ok]]] = free[ok]
@@ -365,14 +381,13 @@ def _verify_and_grow_reference(pts, ids, active, xy_d, pitch_mm, max_rounds):
 
 
 def test_compiled_prediction_kernels_match_their_numpy_definitions():
-    """The compiled defect path against its numpy definition on random inputs: the cKDTree port returns
-    cKDTree's neighbours in cKDTree's order, ties included (lattices, duplicates); the affine fits agree
-    to rounding; verification/growth and the shift coder give the same codes."""
-    from scipy.spatial import cKDTree
-
-    from pipeline.vision.kdtree import kd_build, kd_query
+    """The compiled defect path against its numpy definition on random inputs: the neighbour searches
+    return the defined order (ascending distance, ties to the lower index) on tie-heavy inputs
+    (lattices, duplicates), the design tables included however narrow; the affine fits agree to
+    rounding; verification/growth and the shift coder give the same codes."""
     from pipeline.vision.dtrc.prediction import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
                                                  _verify_and_grow)
+    from pipeline.vision.nearest import design_order, nearest, nearest_members
 
     rng = np.random.default_rng(7)
     names = ["hexagon127", "square121", "circular217_dome", "hexagon61_sep354"]
@@ -388,22 +403,38 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
         ref = np.ascontiguousarray(ref)
         q = np.vstack([xy[rng.choice(len(xy), 10)], rng.uniform(ref.min(0) - 3, ref.max(0) + 3, (10, 2)),
                        ref[rng.choice(len(ref), 5)]])
-        tree = kd_build(ref)
         for k in {1, 2, min(8, len(ref)), min(9, len(ref))}:
-            d, nb = cKDTree(ref).query(q, k=k)
             got_i, got_d2 = np.empty(k, np.int64), np.empty(k)
             for i in range(len(q)):
-                kd_query(ref, tree, q[i, 0], q[i, 1], k, got_i, got_d2)
-                np.testing.assert_array_equal(got_i, nb[i].reshape(-1))
-                np.testing.assert_array_equal(np.sqrt(got_d2), d[i].reshape(-1))
+                nearest(ref, q[i, 0], q[i, 1], k, got_i, got_d2)
+                want_i, want_d2 = _order_reference(ref, q[i, 0], q[i, 1], np.arange(len(ref)), k)
+                np.testing.assert_array_equal(got_i, want_i)
+                np.testing.assert_array_equal(got_d2, want_d2)
+        # design tables: prefixes of the full order, at any width (narrow ones cut inside tie groups)
+        xy = np.ascontiguousarray(xy)
+        full = np.array([_order_reference(xy, p[0], p[1], np.arange(len(xy)), len(xy))[0] for p in xy])
+        width = int(rng.choice([2, 7, 8, 13, 64, len(xy)]))
+        table = design_order(xy, width)
+        for s in range(len(xy)):
+            row = table[s][table[s] >= 0]
+            assert np.all(table[s][len(row):] < 0) and (width < len(xy) or len(row) == len(xy))
+            np.testing.assert_array_equal(row, full[s, :len(row)])
+        member = rng.random(len(xy)) < rng.uniform(0.05, 1.0)
+        out = np.empty(9, np.int64)
+        for s in rng.choice(len(xy), 20):
+            for k, skip in ((1, True), (8, True), (9, False)):
+                cand = [j for j in np.flatnonzero(member) if not (skip and j == s)]
+                m = nearest_members(xy, table, member, s, k, skip, out)
+                np.testing.assert_array_equal(out[:m], _order_reference(xy, xy[s, 0], xy[s, 1], cand, k)[0])
 
     for trial in range(40):
         design = load_design(names[trial % 4])
         xy_d = np.ascontiguousarray(design.rest_markers_mm()[:, :2])
         px = _view(design, rng, rot_deg=rng.uniform(-20, 20), bulge=rng.uniform(0, 0.4), persp=0.05, noise=0.3)
+        order = design_order(xy_d, int(rng.choice([8, 16, 64])))
         coded = rng.permutation(len(xy_d))[:len(xy_d) - int(rng.integers(0, 20))]
-        pred, sc = _affine_fit(xy_d[coded], xy_d[coded], px[coded], 8, True)
-        ref_pred, ref_sc = _affine_reference(xy_d[coded], xy_d[coded], px[coded], exclude_self=True)
+        pred, sc = _affine_fit(coded, coded, px[coded], xy_d, order, 8, True)
+        ref_pred, ref_sc = _affine_reference(coded, coded, px[coded], xy_d, exclude_self=True)
         np.testing.assert_allclose(pred, ref_pred, rtol=0, atol=1e-9)
         np.testing.assert_allclose(sc, ref_sc, rtol=1e-9)
         # blobs: the markers (shuffled, some missing), spurious blobs, wrong codes, some uncoded
@@ -415,7 +446,7 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
         ids[wrong] = ids[np.roll(wrong, 1)]
         active = rng.random(len(pts)) < 0.97
         a, b = ids.copy(), ids.copy()
-        assert _verify_and_grow(pts, a, active, xy_d, design.pattern.separation_mm, 5) == \
+        assert _verify_and_grow(pts, a, active, xy_d, order, design.pattern.separation_mm, 5) == \
             _verify_and_grow_reference(pts, b, active, xy_d, design.pattern.separation_mm, 5)
         np.testing.assert_array_equal(a, b)
         # shift coder: the outermost ring rotated by a random shift, predicted from the rest
@@ -427,9 +458,9 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
         pts = np.vstack([ring_px, px])
         ids = np.concatenate([np.full(n, -1), np.where(layers < design.pattern.layers - 1, np.arange(len(px)), -1)])
         ids[n + rng.choice(len(px), 5, replace=False)] = -1
-        got = _shift_by_prediction(members, d_ids, pts, ids, xy_d, design.pattern.separation_mm)
+        got = _shift_by_prediction(members, d_ids, pts, ids, xy_d, order, design.pattern.separation_mm)
         c = np.nonzero(ids >= 0)[0]
-        pred, sc = _affine_reference(xy_d[d_ids], xy_d[ids[c]], pts[c])
+        pred, sc = _affine_reference(d_ids, ids[c], pts[c], xy_d)
         shifts = (np.arange(n)[:, None] + np.arange(n)[None, :]) % n
         cost = (np.linalg.norm(pts[members][shifts] - pred[None], axis=2)
                 / (design.pattern.separation_mm * np.maximum(sc, 1e-9))[None, :]).mean(axis=1)

@@ -257,7 +257,6 @@ def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
     from pipeline.vision.identity.consistency import _blob_of
     from pipeline.vision.identity.fans import _embedded
     from pipeline.vision.identity.neighbours import _adj
-    from pipeline.vision.kdtree import kd_build
 
     name = "hexagon127"
     lat = lattice_of(DESIGNS[name])
@@ -270,7 +269,7 @@ def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
         adj = _adj(pts)
         ring = np.empty(lat.fan.shape[1], np.int64)
         near = np.empty(24, np.int64)
-        return _embedded(pts, kd_build(pts), True, adj[0], adj[1], b, labels[b], _blob_of(labels, len(lat.xy)),
+        return _embedded(pts, True, adj[0], adj[1], b, labels[b], _blob_of(labels, len(lat.xy)),
                          lat.xy, lat.fan, lat.fan_closed, lat.pitch, 0.35, ring, near, np.empty(24))
 
     assert intact(uv, truth, centre) == 1
@@ -317,7 +316,6 @@ def test_tabulated_leave_one_out_fits_are_the_full_fits(name):
     from pipeline.vision.identity import GATE
     from pipeline.vision.identity.consistency import _blob_of, _consistency
     from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab
-    from pipeline.vision.kdtree import kd_build
 
     design = DESIGNS[name]
     lat = _without_fans(lattice_of(design))          # every blob through the leave-one-out fits
@@ -333,12 +331,11 @@ def test_tabulated_leave_one_out_fits_are_the_full_fits(name):
     untabulated = np.full(n, -1, np.int64)            # matches no neighbourhood size: full fits only
     for pts, slot_of in ((uv, np.arange(n)), (uv, swapped), (np.ascontiguousarray(uv[kept]), kept.copy())):
         blob_of = _blob_of(slot_of, n)
-        tree = kd_build(pts)
         order = np.arange(len(pts))
         args = (lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0)
-        st_tab = _consistency(pts, tree, True, np.zeros(len(pts) + 1, np.int64), np.zeros(0, np.int64), slot_of,
+        st_tab = _consistency(pts, True, np.zeros(len(pts) + 1, np.int64), np.zeros(0, np.int64), slot_of,
                               blob_of, lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab, *args)
-        st_full = _consistency(pts, tree, True, np.zeros(len(pts) + 1, np.int64), np.zeros(0, np.int64), slot_of,
+        st_full = _consistency(pts, True, np.zeros(len(pts) + 1, np.int64), np.zeros(0, np.int64), slot_of,
                                blob_of, lat.xy, lat.nbr, lat.nbr2, untabulated, lat.loo_tab, *args)
         assert np.array_equal(st_tab, st_full)
     # the fits themselves, for every slot and left-out point of the complete view

@@ -1,6 +1,6 @@
 """Vision: from one camera image to certain marker ids.
 
-detection (blobs) -> delaunay / kdtree (compiled geometry) -> dtrc (ring coding, stereo pairing,
+detection (blobs) -> delaunay / nearest (compiled geometry) -> dtrc (ring coding, stereo pairing,
 tracking) -> identity (the certainty rule that decides every id); tactip_id for monocular domes;
 annotate draws the results.
 """

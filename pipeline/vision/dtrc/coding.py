@@ -14,8 +14,8 @@ from pipeline.vision.dtrc.mesh import OUTLIER_NN_FACTOR, _median, _nn_and_mesh
 from pipeline.vision.dtrc.peel import _peel_flat
 from pipeline.vision.dtrc.prediction import _shift_by_prediction, _verify_and_grow
 from pipeline.vision.dtrc.proposals import _certain_ids
-from pipeline.vision.dtrc.ring_codes import (_code_by_angles, _design_flat, _design_rings, _ring_by_angle, _shift_code,
-                                             _unmatched)
+from pipeline.vision.dtrc.ring_codes import (_code_by_angles, _design_flat, _design_order, _design_rings,
+                                             _ring_by_angle, _shift_code, _unmatched)
 from pipeline.vision.identity import R_NO_BLOB, REASONS, use_triangulation
 
 
@@ -127,7 +127,8 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
             # is coded) by the angular fit alone; verified against the neighbours below
             members, phi = _ring_by_angle(pts, members)
             how = "prediction from the rings inside"
-            shift = _shift_by_prediction(members, d_ids, pts, ids, xy_d, design.pattern.separation_mm)
+            shift = _shift_by_prediction(members, d_ids, pts, ids, xy_d, _design_order(design),
+                                         design.pattern.separation_mm)
             shift = None if shift < 0 else int(shift)
             if shift is None and int((ids >= 0).sum()) < 4:
                 s_ang, _, spread = _shift_code(phi, d_ang, theta)
@@ -149,7 +150,8 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         # a defect anywhere may shift markers between peels: check every code against its coded
         # neighbours and fill the free slots by prediction (never by guessing)
         before = int((ids >= 0).sum())
-        removed = _verify_and_grow(pts, ids, active, xy_d, design.pattern.separation_mm, n_layers + 2)
+        removed = _verify_and_grow(pts, ids, active, xy_d, _design_order(design), design.pattern.separation_mm,
+                                   n_layers + 2)
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
     if previous is not None:

@@ -8,7 +8,7 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.kdtree import kd_build, kd_query
+from pipeline.vision.nearest import nearest, nearest_members
 
 
 #: are 1 pitch apart, so 0.4 leaves a 0.2-pitch margin to the half-way point).
@@ -21,43 +21,50 @@ PREDICT_NEIGHBOURS = 8
 PREDICT_RIDGE = 1e-9
 
 
-# ----- prediction: kd-tree neighbours and local affine fits ---------------------------------
+# ----- prediction: nearest coded design points and local affine fits -----------------------
 # The defect paths (irregular rings, verification, growth) predict design slots from local affine fits
 # to the k nearest coded DESIGN points. Design lattices tie exactly (a quarter of the hexagon slots have
 # two design points at the same float distance around the 8th neighbour), and which tied point enters
-# the fit changes the prediction far beyond rounding. The numpy definition took the neighbours from
-# scipy's cKDTree, so the kernels below reproduce cKDTree step for step (leafsize 16, median splits by
-# libstdc++'s nth_element and partition, compact boxes; best-first query with its two binary heaps,
-# a point replacing the farthest neighbour only when strictly nearer): same neighbours, ties included.
+# the fit changes the prediction far beyond rounding. The neighbours are therefore defined exactly:
+# ascending distance, ties to the lower design index (:mod:`pipeline.vision.nearest`), taken from the
+# design's neighbour table (:func:`design_order`, once per design) restricted to the coded slots; the
+# points are summed into the fit in that order. Coded ids are unique (one blob per slot).
 # The 3x3 least squares are solved directly (Gaussian elimination, partial pivoting); they differ from
 # LAPACK by rounding only (~1e-15 relative), far below the gates' margins.
 
 @numba.njit(cache=True)
-def _affine_fit(query_xy, ref_xy, ref_px, k, exclude_self):
-    """Predict image positions of design points from local affine fits to coded neighbours.
+def _affine_fit(query_ids, ref_ids, ref_px, xy_d, order, k, exclude_self):
+    """Predict image positions of design slots from local affine fits to coded neighbours.
 
-    Least squares (``+ PREDICT_RIDGE I`` on the normal matrix) of px ~ [x, y, 1] A over the ``k`` nearest
-    reference design points of each query (cKDTree's, without the query itself when
-    ``exclude_self``). Returns (predicted px (Q, 2), local pixels per design mm (Q,) = sqrt |det A_2x2|).
+    Least squares (``+ PREDICT_RIDGE I`` on the normal matrix) of px ~ [x, y, 1] A over the ``k``
+    design slots of ``ref_ids`` (coded, unique; image positions ``ref_px``) nearest to each query slot
+    ``query_ids[q]``, in (distance, design index) order (without the query slot itself when
+    ``exclude_self``); ``order``: :func:`pipeline.vision.nearest.design_order` of the design points
+    ``xy_d``. Returns (predicted px (Q, 2), local pixels per design mm (Q,) = sqrt |det A_2x2|).
     """
-    kk = min(k + (1 if exclude_self else 0), len(ref_xy))
-    tree = kd_build(ref_xy)
-    nb = np.empty(kk, np.int64)
-    d2 = np.empty(kk)
-    pred = np.empty((len(query_xy), 2))
-    scale = np.empty(len(query_xy))
+    n_slots = len(xy_d)
+    member = np.zeros(n_slots, np.bool_)
+    row_of = np.full(n_slots, -1, np.int64)
+    for r in range(len(ref_ids)):
+        member[ref_ids[r]] = True
+        row_of[ref_ids[r]] = r
+    nb = np.empty(max(k, 1), np.int64)
+    pred = np.empty((len(query_ids), 2))
+    scale = np.empty(len(query_ids))
     M = np.empty((3, 3))
     B = np.empty((3, 2))
-    for q in range(len(query_xy)):
-        kd_query(ref_xy, tree, query_xy[q, 0], query_xy[q, 1], kk, nb, d2)
+    for q in range(len(query_ids)):
+        s = query_ids[q]
+        m = nearest_members(xy_d, order, member, s, k, exclude_self, nb)
         M[:] = 0.0
         B[:] = 0.0
-        for t in range(1 if exclude_self else 0, kk):
-            r = nb[t]
-            X = (ref_xy[r, 0], ref_xy[r, 1], 1.0)
+        for t in range(m):
+            j = nb[t]
+            r = row_of[j]
+            X = (xy_d[j, 0], xy_d[j, 1], 1.0)
             for i in range(3):
-                for j in range(3):
-                    M[i, j] += X[i] * X[j]
+                for jj in range(3):
+                    M[i, jj] += X[i] * X[jj]
                 B[i, 0] += X[i] * ref_px[r, 0]
                 B[i, 1] += X[i] * ref_px[r, 1]
         for i in range(3):
@@ -81,11 +88,11 @@ def _affine_fit(query_xy, ref_xy, ref_px, k, exclude_self):
                     B[r, j] -= f * B[c, j]
         for c in range(2, -1, -1):
             for j in range(2):
-                s = B[c, j]
+                v = B[c, j]
                 for i in range(c + 1, 3):
-                    s -= M[c, i] * B[i, j]
-                B[c, j] = s / M[c, c]
-        qx, qy = query_xy[q, 0], query_xy[q, 1]
+                    v -= M[c, i] * B[i, j]
+                B[c, j] = v / M[c, c]
+        qx, qy = xy_d[s, 0], xy_d[s, 1]
         pred[q, 0] = qx * B[0, 0] + qy * B[1, 0] + B[2, 0]
         pred[q, 1] = qx * B[0, 1] + qy * B[1, 1] + B[2, 1]
         scale[q] = math.sqrt(abs(B[0, 0] * B[1, 1] - B[0, 1] * B[1, 0]))
@@ -93,7 +100,7 @@ def _affine_fit(query_xy, ref_xy, ref_px, k, exclude_self):
 
 
 @numba.njit(cache=True)
-def _verify_and_grow(pts, ids, active, xy_d, pitch_mm, max_rounds):
+def _verify_and_grow(pts, ids, active, xy_d, order, pitch_mm, max_rounds):
     """Uncode ids that disagree with their coded neighbours, then code free slots by prediction.
 
     Verification: each coded blob must lie within ``PREDICT_GATE`` local pitches of its slot predicted
@@ -106,8 +113,7 @@ def _verify_and_grow(pts, ids, active, xy_d, pitch_mm, max_rounds):
     removed = 0
     coded = np.flatnonzero(ids >= 0)
     if len(coded) >= 4:
-        ref_xy = xy_d[ids[coded]]
-        pred, sc = _affine_fit(ref_xy, ref_xy, pts[coded], PREDICT_NEIGHBOURS, True)
+        pred, sc = _affine_fit(ids[coded], ids[coded], pts[coded], xy_d, order, PREDICT_NEIGHBOURS, True)
         for i in range(len(coded)):
             dx, dy = pred[i, 0] - pts[coded[i], 0], pred[i, 1] - pts[coded[i], 1]
             if math.sqrt(dx * dx + dy * dy) > gate * sc[i]:
@@ -124,17 +130,15 @@ def _verify_and_grow(pts, ids, active, xy_d, pitch_mm, max_rounds):
         cand = np.flatnonzero(active & (ids < 0))
         if len(coded) < 4 or len(free) == 0 or len(cand) == 0:
             break
-        pred, sc = _affine_fit(xy_d[free], xy_d[ids[coded]], pts[coded], PREDICT_NEIGHBOURS, False)
+        pred, sc = _affine_fit(free, ids[coded], pts[coded], xy_d, order, PREDICT_NEIGHBOURS, False)
         cand_px = pts[cand]
-        cand_tree = kd_build(cand_px)
-        pred_tree = kd_build(pred)
         take = np.full(len(free), -1, np.int64)
         for q in range(len(free)):
-            kd_query(cand_px, cand_tree, pred[q, 0], pred[q, 1], 1, one, one_d2)
+            nearest(cand_px, pred[q, 0], pred[q, 1], 1, one, one_d2)
             j = one[0]
             if not math.sqrt(one_d2[0]) <= gate * sc[q]:
                 continue
-            kd_query(pred, pred_tree, cand_px[j, 0], cand_px[j, 1], 1, one, one_d2)
+            nearest(pred, cand_px[j, 0], cand_px[j, 1], 1, one, one_d2)
             if one[0] == q:
                 take[q] = cand[j]
         if not np.any(take >= 0):
@@ -153,7 +157,7 @@ SHIFT_MARGIN = 2.0
 
 
 @numba.njit(cache=True)
-def _shift_by_prediction(members, d_ids, pts, ids, xy_d, pitch_mm):
+def _shift_by_prediction(members, d_ids, pts, ids, xy_d, order, pitch_mm):
     """Cyclic shift coding a complete ring (``members`` sorted CCW) whose gaps are irregular.
 
     The ring's cyclic order is topological and survives deformation; only its start is unknown. Each
@@ -165,7 +169,7 @@ def _shift_by_prediction(members, d_ids, pts, ids, xy_d, pitch_mm):
     coded = np.flatnonzero(ids >= 0)
     if len(coded) < 4:
         return -1
-    pred, sc = _affine_fit(xy_d[d_ids], xy_d[ids[coded]], pts[coded], PREDICT_NEIGHBOURS, False)
+    pred, sc = _affine_fit(d_ids, ids[coded], pts[coded], xy_d, order, PREDICT_NEIGHBOURS, False)
     n = len(d_ids)
     cost = np.empty(n)
     for s in range(n):

@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.vision.dtrc.mesh import _median
+from pipeline.vision.nearest import design_order
 
 
 #: one missing marker doubles a gap, a spurious one halves it.
@@ -35,6 +36,18 @@ def _design_rings(design: SensorDesign):
             rings.append((ids, p, np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0])))
         _DESIGN_CACHE[key] = (xy, rings)
     return _DESIGN_CACHE[key]
+
+
+_ORDER_CACHE: dict[tuple, np.ndarray] = {}
+
+
+def _design_order(design: SensorDesign) -> np.ndarray:
+    """:func:`pipeline.vision.nearest.design_order` of the design points of :func:`_design_rings`: the
+    neighbour table the defect path's affine predictions take their neighbours from."""
+    key = (design.pattern.kind, design.pattern.layers, design.pattern.separation_mm)
+    if key not in _ORDER_CACHE:
+        _ORDER_CACHE[key] = design_order(_design_rings(design)[0])
+    return _ORDER_CACHE[key]
 
 
 def _marker_count(design: SensorDesign) -> int:

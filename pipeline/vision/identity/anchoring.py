@@ -15,12 +15,12 @@ from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDI
                                                 RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM, RING_MIN_MARKERS,
                                                 RING_ROUND, RING_SHAPE)
 from pipeline.vision.identity.fits import _design_half, _fit, _fit_sums, _gather, _image_half
-from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
-from pipeline.vision.kdtree import kd_query
+from pipeline.vision.identity.neighbours import _adj
+from pipeline.vision.nearest import nearest
 
 
 @numba.njit(cache=True)
-def _beyond_hits(pts, tree, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gate):
+def _beyond_hits(pts, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gate):
     """Per lattice site beyond the outer ring whose outer-ring slot is identified: 1 when an
     unidentified blob lies within ``gate`` local pitches of the site's position predicted from that
     slot's identified neighbourhood, else 0."""
@@ -48,7 +48,7 @@ def _beyond_hits(pts, tree, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gat
         dy = v_xy[v, 1] - oy - my
         pu = ou + mu + l00 * dx + l01 * dy
         pv = ov + mv + l10 * dx + l11 * dy
-        kd_query(pts, tree, pu, pv, 1, one, one_d2)
+        nearest(pts, pu, pv, 1, one, one_d2)
         if slot_of[one[0]] < 0 and math.sqrt(one_d2[0]) <= gate * math.sqrt(l00 * l11 - l01 * l10) * pitch:
             hit[v] = 1
     return hit
@@ -221,9 +221,8 @@ def _anchored(pts, slot_of, members, lat) -> bool:
         return True
     adj = _adj(pts)
     # without the blob search first (usually enough evidence), then with it
-    tries = ((_PLACEHOLDER_TREE, False), (None, True)) if lat.translation_lattice else ((None, True),)
-    for tree, has_tree in tries:
-        if _alternatives_excluded(pts, _tree(pts) if tree is None else tree, has_tree, adj[0], adj[1], slot_of,
+    for search in (False, True) if lat.translation_lattice else (True,):
+        if _alternatives_excluded(pts, search, adj[0], adj[1], slot_of,
                                   members, lat.alt, lat.alt_first, lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab,
                                   lat.fan, lat.fan_closed, lat.pitch, GATE, ANCHOR_EVIDENCE):
             return True
@@ -231,7 +230,7 @@ def _anchored(pts, slot_of, members, lat) -> bool:
 
 
 @numba.njit(cache=True)
-def _alternatives_excluded(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, members, alt, alt_first, xy, nbr, nbr2, loo_m,
+def _alternatives_excluded(pts, search, adj_ptr, adj_idx, slot_of, members, alt, alt_first, xy, nbr, nbr2, loo_m,
                            loo_tab, fan, closed, pitch, gate, evidence):
     """Every alternative reading ``alt[a]`` of the patch ``members`` is excluded by ``evidence``
     markers: pushed outside the design (its map gives -1; only markers with EVIDENCE_IMMEDIATE
@@ -287,7 +286,7 @@ def _alternatives_excluded(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, membe
                     order[k] = b
                     k += 1
         need = evidence - outside
-        st = _consistency(pts, tree, has_tree, adj_ptr, adj_idx, alt_slot, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan,
+        st = _consistency(pts, search, adj_ptr, adj_idx, alt_slot, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan,
                           closed, pitch, gate, order, need)
         bad = 0
         for b in members:

@@ -13,13 +13,12 @@ from scipy.spatial import cKDTree
 from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchored, _beyond_hits, _centre_holds,
                                                 _components, _rotation_deg)
 from pipeline.vision.identity.consistency import _blob_of, _consistency, consistent
-from pipeline.vision.identity.constants import (_NEED_TREE, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
+from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
                                                 FOLLOW_GATE, FOLLOW_NEIGHBOURS, GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS,
                                                 R_ANCHOR, R_FEW, R_NO_BLOB, R_OK, R_ROTATION)
 from pipeline.vision.identity.fits import _fit, _fit_sums, _gather
 from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
-from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
-from pipeline.vision.kdtree import kd_build
+from pipeline.vision.identity.neighbours import _adj
 
 
 @numba.njit(cache=True)
@@ -62,7 +61,7 @@ def certify_whole(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> bool:
     adj = _adj(pts)
     if len(adj[1]) == 0:
         return False
-    if not _whole_kernel(pts, _PLACEHOLDER_TREE, adj[0], adj[1], slot_of, lat.xy, lat.nbr, lat.nbr2, lat.loo_m,
+    if not _whole_kernel(pts, adj[0], adj[1], slot_of, lat.xy, lat.nbr, lat.nbr2, lat.loo_m,
                          lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, rotation_limit_deg(lat), lat.alt,
                          lat.alt_first, ANCHOR_EVIDENCE):
         return False
@@ -71,7 +70,7 @@ def certify_whole(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> bool:
 
 
 @numba.njit(cache=True)
-def _whole_kernel(pts, tree, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed, pitch, gate, limit, alt,
+def _whole_kernel(pts, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed, pitch, gate, limit, alt,
                   alt_first, evidence):
     """:func:`certify_whole` without the circular patterns' centre test."""
     n = len(slot_of)
@@ -82,30 +81,28 @@ def _whole_kernel(pts, tree, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, lo
             return False
         blob_of[s] = b
     order = np.arange(n)
-    has_tree = False
+    search = False
     if fan[:, 0].max() < 0:
         # no fans (circular patterns): every test searches
-        tree = kd_build(pts)
-        has_tree = True
-    st = _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
+        search = True
+    st = _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
                       pitch, gate, order, 0)
     n_need = 0
     for b in range(n):
-        if st[b] == _NEED_TREE:
+        if st[b] == _NEED_SEARCH:
             n_need += 1
         elif st[b] != 0:
             return False
     if n_need:
         # the fans that are not exactly Delaunay stars need the blob search
-        tree = kd_build(pts)
-        has_tree = True
+        search = True
         need = np.empty(n_need, np.int64)
         k = 0
         for b in range(n):
-            if st[b] == _NEED_TREE:
+            if st[b] == _NEED_SEARCH:
                 need[k] = b
                 k += 1
-        st = _consistency(pts, tree, True, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
+        st = _consistency(pts, True, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
                           pitch, gate, need, 0)
         for b in need:
             if st[b] != 0:
@@ -118,12 +115,12 @@ def _whole_kernel(pts, tree, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, lo
         return False
     if alt.shape[0] == 0:
         return True
-    if _alternatives_excluded(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2, loo_m,
+    if _alternatives_excluded(pts, search, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2, loo_m,
                               loo_tab, fan, closed, pitch, gate, evidence):
         return True
-    if has_tree:
+    if search:
         return False
-    return _alternatives_excluded(pts, kd_build(pts), True, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2,
+    return _alternatives_excluded(pts, True, adj_ptr, adj_idx, slot_of, order, alt, alt_first, xy, nbr, nbr2,
                                   loo_m, loo_tab, fan, closed, pitch, gate, evidence)
 
 
@@ -155,7 +152,7 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
     n_comp = int(comp.max()) + 1
     beyond = np.zeros(n_comp, np.int64)
     if len(lat.beyond_slot) and len(lab) < len(slot_of):   # a hit is an unidentified blob
-        hits = _beyond_hits(pts, _tree(pts), slot_of, blob_of, lat.xy, lat.nbr2, lat.pitch, lat.beyond_slot,
+        hits = _beyond_hits(pts, slot_of, blob_of, lat.xy, lat.nbr2, lat.pitch, lat.beyond_slot,
                             lat.beyond_xy, GROW_GATE)
         # a real outer row continues along the ring: the longest run of consecutive outer-ring
         # slots (cyclic, canonical order) with a blob beyond them, per patch

@@ -10,16 +10,16 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.identity.constants import (_NEED_TREE, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, LOCAL_ONLY,
+from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, LOCAL_ONLY,
                                                 MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT)
 from pipeline.vision.identity.fans import _embedded
 from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
-from pipeline.vision.identity.neighbours import _PLACEHOLDER_TREE, _adj, _tree
-from pipeline.vision.kdtree import kd_query
+from pipeline.vision.identity.neighbours import _adj
+from pipeline.vision.nearest import nearest
 
 
 @numba.njit(cache=True)
-def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
+def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
                  pitch, gate, order, stop_after):
     """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
 
@@ -29,8 +29,8 @@ def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nb
     must be the unambiguous nearest blob to its own prediction (R_AMBIGUOUS otherwise: at least
     twice as near as the second-nearest and 0.15 pitches nearer). A blob failing these is still
     consistent when it is the vertex of an intact image of its design fan (:func:`_embedded`).
-    ``tree``: :func:`kd_build` of ``pts``; with ``has_tree`` False (a placeholder tree) a blob whose
-    test needs a blob search gets :data:`_NEED_TREE` instead (not counted as inconsistent).
+    With ``search`` False (no blob searches: the first, cheap pass) a blob whose test needs a blob
+    search gets :data:`_NEED_SEARCH` instead (not counted as inconsistent).
     Blobs are visited in ``order``; with ``stop_after`` > 0 the visit stops once that many are
     inconsistent (the anchoring test needs only that much evidence)."""
     n = len(slot_of)
@@ -55,14 +55,14 @@ def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nb
         # (slots without a fan, e.g. every slot of a circular pattern, go straight to the fits)
         e = 0
         if fan[s, 0] >= 0:
-            e = _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring,
+            e = _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring,
                           near, near_d2)
         if e == 1:
             st = 0
-        elif e == _NEED_TREE:
-            st = _NEED_TREE
+        elif e == _NEED_SEARCH:
+            st = _NEED_SEARCH
         else:
-            st = _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots,
+            st = _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots,
                              blobs, acc, two, two_d2, K)
         status[b] = st
         if st == R_INCONSISTENT:
@@ -71,7 +71,7 @@ def _consistency(pts, tree, has_tree, adj_ptr, adj_idx, slot_of, blob_of, xy, nb
 
 
 @numba.njit(cache=True)
-def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc, two,
+def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc, two,
                 two_d2, K):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
 
@@ -116,9 +116,9 @@ def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_ta
         if r > gate:
             return R_INCONSISTENT
         if q == 0 and len(pts) >= 2:
-            if not has_tree:
-                return _NEED_TREE
-            kd_query(pts, tree, pu, pv, 2, two, two_d2)
+            if not search:
+                return _NEED_SEARCH
+            nearest(pts, pu, pv, 2, two, two_d2)
             d1 = math.sqrt(two_d2[0]) / scale
             d2 = math.sqrt(two_d2[1]) / scale
             if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
@@ -126,7 +126,7 @@ def _loo_status(pts, tree, has_tree, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_ta
             if n_imm <= n_design - 2:
                 # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
                 # to b than CLOSE_BLOB separations leaves open which of the two is the marker
-                kd_query(pts, tree, pts[b, 0], pts[b, 1], 2, two, two_d2)
+                nearest(pts, pts[b, 0], pts[b, 1], 2, two, two_d2)
                 if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
                     return R_AMBIGUOUS
     return 0
@@ -140,17 +140,16 @@ def _blob_of(slot_of: np.ndarray, n_slots: int) -> np.ndarray:
 
 
 def _statuses(pts, adj, slot_of, lat, order=None):
-    """:func:`_consistency` of every labelled blob; the k-d tree of the blobs is built only when
-    some blob's test needs a search (usually none does: intact fans are checked on the Delaunay
-    triangulation)."""
+    """:func:`_consistency` of every labelled blob; blob searches run only for the blobs whose test
+    needs one (usually none does: intact fans are checked on the Delaunay triangulation)."""
     blob_of = _blob_of(slot_of, len(lat.xy))
     order = np.arange(len(slot_of)) if order is None else order
-    has_tree = not lat.translation_lattice          # no fans: every test searches
-    st = _consistency(pts, _tree(pts) if has_tree else _PLACEHOLDER_TREE, has_tree, adj[0], adj[1], slot_of, blob_of,
+    search = not lat.translation_lattice          # no fans: every test searches
+    st = _consistency(pts, search, adj[0], adj[1], slot_of, blob_of,
                       lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0)
-    need = np.flatnonzero(st == _NEED_TREE)
+    need = np.flatnonzero(st == _NEED_SEARCH)
     if len(need):
-        st2 = _consistency(pts, _tree(pts), True, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2,
+        st2 = _consistency(pts, True, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2,
                            lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, need, 0)
         st[need] = st2[need]
     return st

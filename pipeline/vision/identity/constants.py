@@ -99,8 +99,8 @@ MIN_PATCH = 4
 
 # per-slot reason codes (0 = identified)
 R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION, R_CONTRADICTED = range(8)
-#: internal status: the test needs the k-d tree of the blobs (built only when some blob needs it)
-_NEED_TREE = 99
+#: internal status: the test needs a blob search (run only for the blobs whose test needs one)
+_NEED_SEARCH = 99
 REASONS = {
     R_NO_BLOB: "no blob at its predicted position",
     R_AMBIGUOUS: "two blobs near its predicted position",

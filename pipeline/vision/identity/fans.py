@@ -7,8 +7,8 @@ import math
 
 import numba
 
-from pipeline.vision.identity.constants import _NEED_TREE, FAN_DEGENERATE, FAN_MAX_GAP_DEG, FAN_MAX_STRETCH
-from pipeline.vision.kdtree import kd_query
+from pipeline.vision.identity.constants import _NEED_SEARCH, FAN_DEGENERATE, FAN_MAX_GAP_DEG, FAN_MAX_STRETCH
+from pipeline.vision.nearest import nearest
 
 
 @numba.njit(cache=True)
@@ -36,7 +36,7 @@ def _fan_turns_once(p, c, ring, m):
 
 
 @numba.njit(cache=True)
-def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near, near_d2):
+def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near, near_d2):
     """Is blob ``b`` the vertex of an intact image of its slot's design fan (deformed-ring
     certification)? Every design neighbour of the closed fan ``fan[s]`` is identified; their blobs
     surround ``b`` counter-clockwise in the design's order, turning once (no fold, no swap, no
@@ -50,9 +50,9 @@ def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, clo
     step but the widest and be exactly ``b``'s Delaunay neighbourhood (``adj_ptr``, ``adj_idx``:
     :func:`use_triangulation`; nothing else touches ``b``, outside the pattern included).
 
-    Returns 1 (intact), 0 (not), or :data:`_NEED_TREE` when only the blob search of the emptiness
-    test is left and ``has_tree`` is False. ``ring``, ``near``, ``near_d2``: work arrays (fan width,
-    and >= :data:`FAN_QUERY`)."""
+    Returns 1 (intact), 0 (not), or :data:`_NEED_SEARCH` when only the blob search of the emptiness
+    test is left and ``search`` (blob searches allowed) is False. ``ring``, ``near``, ``near_d2``:
+    work arrays (fan width, and >= :data:`FAN_QUERY`)."""
     K = fan.shape[1]
     if fan[s, 0] < 0:
         return 0
@@ -140,8 +140,8 @@ def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, clo
             return 1
     if not closed[s]:
         return 0
-    if not has_tree:
-        return _NEED_TREE
+    if not search:
+        return _NEED_SEARCH
     # Otherwise: usually the fan's own blobs are still the nearest ones, so every other blob is
     # farther than all of them (outside the fan); else the nearer blobs are tested against the
     # fan's triangles
@@ -151,7 +151,7 @@ def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, clo
         dy = pts[ring[i], 1] - pts[b, 1]
         r2 = max(r2, dx * dx + dy * dy)
     kq = min(len(pts), m + 1)
-    kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
+    nearest(pts, pts[b, 0], pts[b, 1], kq, near, near_d2)
     if kq == m + 1:
         own = 0
         for q in range(kq):
@@ -165,7 +165,7 @@ def _embedded(pts, tree, has_tree, adj_ptr, adj_idx, b, s, blob_of, xy, fan, clo
         if own == kq:
             return 1
     kq = min(len(pts), len(near))
-    kd_query(pts, tree, pts[b, 0], pts[b, 1], kq, near, near_d2)
+    nearest(pts, pts[b, 0], pts[b, 1], kq, near, near_d2)
     if kq == len(near) and near_d2[kq - 1] < r2:
         return 0                                      # too many blobs to tell
     for q in range(kq):

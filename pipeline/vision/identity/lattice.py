@@ -16,7 +16,6 @@ from pipeline.vision.identity.constants import (BEYOND_EMPTY, FAN_MAX_GAP_DEG, G
                                                 SLOT_MATCH_SHIFT, SLOT_MATCH_SYMMETRY)
 from pipeline.vision.identity.fans import _fan_turns_once
 from pipeline.vision.identity.fits import _loo_design
-from pipeline.vision.kdtree import kd_build
 
 
 @dataclass(frozen=True)
@@ -182,12 +181,11 @@ def lattice_of(design) -> Lattice:
     alt = np.array(maps, np.int64).reshape(-1, n)
     loo_m, loo_tab = _loo_design(xy, nbr, nbr2, pitch)
     first = np.ones(alt.shape, np.int64)
-    dtree = kd_build(xy)
     for a in range(len(alt)):
         g = alt[a].copy()
         u, cnt = np.unique(g[g >= 0], return_counts=True)
         g[np.isin(g, u[cnt > 1])] = -1
-        st = _consistency(xy, dtree, True, np.zeros(n + 1, np.int64), np.zeros(0, np.int64), g, _blob_of(g, n), xy,
+        st = _consistency(xy, True, np.zeros(n + 1, np.int64), np.zeros(0, np.int64), g, _blob_of(g, n), xy,
                           nbr, nbr2, loo_m, loo_tab, fan, fan_closed, pitch, GATE, np.arange(n), 0)
         first[a, st == R_INCONSISTENT] = 0
     outer_ring = np.flatnonzero(layers == layers.max()).astype(np.int64)

@@ -1,32 +1,14 @@
-"""The blob search structures of the frame being identified: the k-d tree of its blob centres and the
-adjacency of the Delaunay triangulation ring coding computed (:func:`use_triangulation`), kept for
-the very arrays of that frame."""
+"""The adjacency of the Delaunay triangulation of the frame being identified, which ring coding
+computed (:func:`use_triangulation`), kept for the very arrays of that frame. (Blob searches need no
+structure: :func:`pipeline.vision.nearest.nearest` scans the few hundred blob centres.)"""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-from pipeline.vision.kdtree import kd_build
-
-
-_TREES: dict = {}
-
-
-def _tree(pts: np.ndarray):
-    """:func:`kd_build` of the blob centres, kept for the arrays of the frame being identified."""
-    key = id(pts)
-    hit = _TREES.get(key)
-    if hit is not None and hit[0] is pts:
-        return hit[1]
-    _TREES.clear()
-    t = kd_build(pts)
-    _TREES[key] = (pts, t)
-    return t
-
 
 _MESHES: dict = {}
-_PLACEHOLDER_TREE = kd_build(np.zeros((1, 2)))
 _NO_ADJ = (np.zeros(1, np.int64), np.zeros(0, np.int64))
 
 

@@ -1,0 +1,131 @@
+"""Nearest neighbours in one defined order: ascending squared distance, ties broken by the lower index.
+
+Why the order is defined: design lattices tie exactly (a quarter of the hexagon slots have two design
+points at the same float distance around the 8th neighbour), and the defect path of ring coding
+(:mod:`pipeline.vision.dtrc.prediction`) fits local affine maps to the k nearest coded DESIGN points;
+which tied point enters a fit changes the prediction far beyond rounding. With ties going to the lower
+design index, the neighbours (hence the codes) are a function of the design and the coded set alone,
+not of a search structure's internals or of the order in which blobs were detected.
+
+Two searches:
+
+- :func:`design_order` / :func:`nearest_members`: among a subset of the design points (the coded
+  ones) around a design point, from a table computed once per design (the design is static; the
+  subset changes per frame and per growth round).
+- :func:`nearest`: among the blob centres of one frame (a few hundred points, searched a few times
+  per blob on the defect paths): brute force, exact, with no structure to build or keep per frame.
+  Blob centres are measured positions; exact ties there are rare and the rule merely makes them
+  reproducible.
+
+Squared distances are ``dx * dx + dy * dy`` everywhere (numpy and the compiled kernels round alike),
+so the table and the brute-force searches agree bit for bit.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["DESIGN_ORDER_WIDTH", "design_order", "nearest", "nearest_members"]
+
+#: Design points listed per design point in :func:`design_order`: about four hexagonal shells, enough
+#: for the 8 nearest coded points wherever the coded set is not sparse; a query that runs past its row
+#: falls back to a brute-force search (same order).
+DESIGN_ORDER_WIDTH = 64
+
+
+def design_order(xy: np.ndarray, width: int = DESIGN_ORDER_WIDTH) -> np.ndarray:
+    """Per design point (row), the nearest design points in (squared distance, index) order, itself
+    first; ``-1`` pads a row after the last entry that is certainly in order.
+
+    The candidates come from one cKDTree query of ``width`` neighbours; they are re-sorted by
+    (squared distance, index). A point outside the candidates may tie with the last candidate's
+    distance (cKDTree keeps an arbitrary one of tied points), so when a row does not list every
+    point, the candidates at its largest distance are dropped: every entry left precedes every point
+    not listed. Rows listing every point (``width >= len(xy)``) are complete and unpadded.
+    """
+    xy = np.ascontiguousarray(xy, dtype=np.float64)
+    n = len(xy)
+    kq = min(n, int(width))
+    nb = cKDTree(xy).query(xy, k=kq)[1].reshape(n, kq).astype(np.int64)
+    dx = xy[nb, 0] - xy[:, None, 0]
+    dy = xy[nb, 1] - xy[:, None, 1]
+    d2 = dx * dx + dy * dy
+    o = np.lexsort((nb, d2), axis=-1)
+    nb = np.take_along_axis(nb, o, axis=1)
+    d2 = np.take_along_axis(d2, o, axis=1)
+    if kq < n:
+        nb[d2 >= d2[:, -1:]] = -1
+    return np.ascontiguousarray(nb)
+
+
+@numba.njit(cache=True)
+def nearest(pts, x, y, k, out_idx, out_d2):
+    """The ``k`` (``<= len(pts)``) points of ``pts`` nearest to ``(x, y)``, in (squared distance, index)
+    order, into ``out_idx`` / ``out_d2`` (squared distances). Brute force: one pass keeping a sorted
+    prefix; a point enters only when strictly nearer than the k-th kept, and the points come in index
+    order, so of tied points the lower index stays first."""
+    n = 0
+    for i in range(len(pts)):
+        dx = pts[i, 0] - x
+        dy = pts[i, 1] - y
+        d = dx * dx + dy * dy
+        if n == k:
+            if not d < out_d2[k - 1]:
+                continue
+            j = k - 1
+        else:
+            j = n
+            n += 1
+        while j > 0 and out_d2[j - 1] > d:
+            out_idx[j] = out_idx[j - 1]
+            out_d2[j] = out_d2[j - 1]
+            j -= 1
+        out_idx[j] = i
+        out_d2[j] = d
+
+
+@numba.njit(cache=True)
+def nearest_members(xy, order, member, s, k, skip_self, out):
+    """The ``k`` design points with ``member`` True nearest to design point ``s`` (without ``s`` itself
+    when ``skip_self``), in (squared distance, index) order, into ``out``; returns how many were found
+    (fewer than ``k`` only when there are fewer members). ``order``: :func:`design_order` of ``xy``;
+    when its row runs out before ``k`` members, a brute-force search over all members decides."""
+    n = 0
+    row = order[s]
+    for t in range(len(row)):
+        j = row[t]
+        if j < 0:
+            break
+        if member[j] and not (skip_self and j == s):
+            out[n] = j
+            n += 1
+            if n == k:
+                return n
+    if order.shape[1] >= len(xy):
+        return n  # the row listed every point
+    # brute force over the members, as :func:`nearest`
+    d2 = np.empty(k)
+    x, y = xy[s, 0], xy[s, 1]
+    n = 0
+    for i in range(len(xy)):
+        if not member[i] or (skip_self and i == s):
+            continue
+        dx = xy[i, 0] - x
+        dy = xy[i, 1] - y
+        d = dx * dx + dy * dy
+        if n == k:
+            if not d < d2[k - 1]:
+                continue
+            j = k - 1
+        else:
+            j = n
+            n += 1
+        while j > 0 and d2[j - 1] > d:
+            out[j] = out[j - 1]
+            d2[j] = d2[j - 1]
+            j -= 1
+        out[j] = i
+        d2[j] = d
+    return n
