@@ -310,7 +310,7 @@ def test_model_cache_gives_the_same_physics():
 def test_mirrored_split_is_conforming_and_its_own_mirror_image():
     """Every interior face shared by exactly two tetrahedra, none degenerate, and the tetrahedra map onto
     themselves under x -> -x and y -> -y (the plain Kuhn split does not)."""
-    from twin.physics import build_mesh
+    from twin.mesh import build_mesh
 
     d = load_design("hexagon127")
     for mirrored in (True, False):
@@ -366,7 +366,7 @@ def test_nodal_volume_forces_are_the_energy_gradient_and_a_dilation_gives_its_pr
     """U = sum_n (K/2) V_n (J_n - 1)^2 on the twin's mesh, two materials: the forces equal -dU/dx by central
     differences (relative 1e-6), and a uniform dilation J = 0.97 gives every node J_n = J, U = (K/2) V (J-1)^2
     per material and the virtual work sum f.x = -3 s^2 sum K V (J-1) of a pressure K (J - 1) (rel. 1e-9)."""
-    from twin.physics import build_mesh
+    from twin.mesh import build_mesh
     from twin.volumetric import NodalVolume
 
     m = build_mesh(load_design("hexagon127"), MeshSpec(fine_mm=2.5))
@@ -407,11 +407,11 @@ def test_nodal_volumetric_sim_applies_the_energy_gradient_and_restores_exactly()
     shear modulus; a checkpoint restores the state bit for bit."""
     from benchmarks.experiments.physics import _uniform
     from twin import materials, units, volumetric
-    from twin.physics import _FLIP
+    from twin.model import _FLIP, flex_elasticity
 
     d = _uniform(load_design("hexagon127"), 0.49)
     sim = SkinSim(d, make_indenter("sphere", radius_mm=10.0), mesh=MeshSpec(volumetric="nodal"))
-    E_flex, nu_flex = sim._flex_elasticity(materials.gel_material(d))
+    E_flex, nu_flex = flex_elasticity(sim.mesh_spec, materials.gel_material(d))
     E = units.mpa_to_pa(d.gel.youngs_modulus_mpa)
     assert nu_flex == volumetric.NU_DEV
     assert E_flex / (2 * (1 + nu_flex)) == pytest.approx(E / (2 * (1 + 0.49)), rel=1e-12)   # shear modulus kept

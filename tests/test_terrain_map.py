@@ -9,6 +9,7 @@ import pytest
 
 from pipeline.types import DataError
 from benchmarks import terrain_regions as TR
+from twin import dem as D
 from twin import terrain as T
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -74,7 +75,7 @@ def test_himalaya_highest_point(tmap):
 
 @needs_data
 def test_highest_point_height_matches_source_dem(tmap):
-    dem = T.load_etopo(DATA / "etopo20.cdf")
+    dem = D.load_etopo(DATA / "etopo20.cdf")
     src_max = float(np.nanmax(dem.elevation_m))
     assert src_max > 5500                            # Himalaya on a 20' grid
     assert float(tmap.elevation_m.max()) == pytest.approx(src_max, abs=PEAK_TOL_M)
@@ -100,7 +101,7 @@ def test_relief_from_dem_flattens_by_mask_not_by_sign():
     mask = np.zeros((180, 360), bool)
     mask[:, :90] = True                               # land: the westernmost quarter (negative z)
     mask[:, 270:] = True                              # and the easternmost quarter (positive z)
-    tm = T.relief_from_dem(T.Dem(lat, lon, elev, "synthetic"), step_deg=1.0, mask=mask)
+    tm = T.relief_from_dem(D.Dem(lat, lon, elev, "synthetic"), step_deg=1.0, mask=mask)
     np.testing.assert_allclose(tm.elevation_m[:, :90], -100.0)
     np.testing.assert_allclose(tm.elevation_m[:, 270:], 500.0)
     np.testing.assert_allclose(tm.elevation_m[:, 90:270], -3000.0)   # sea, whatever its sign
@@ -122,7 +123,7 @@ def test_stl_is_watertight_with_paper_dimensions(tmap, tmp_path):
 @needs_data
 @pytest.mark.parametrize("name, shape", [("etopo20.cdf", (540, 1080)), ("etopo60.cdf", (180, 360))])
 def test_load_etopo_real_grids(name, shape):
-    dem = T.load_etopo(DATA / name)
+    dem = D.load_etopo(DATA / name)
     assert dem.elevation_m.shape == shape
     assert np.all(np.diff(dem.lon_deg) > 0) and dem.lon_deg[0] >= -180 and dem.lon_deg[-1] < 180
     assert np.all(np.diff(dem.lat_deg) > 0)
@@ -142,7 +143,7 @@ def _netcdf(path, varname="ROSE"):
 
 def test_load_etopo_small_file_wraps_longitudes(tmp_path):
     _netcdf(tmp_path / "ok.nc")
-    dem = T.load_etopo(tmp_path / "ok.nc")
+    dem = D.load_etopo(tmp_path / "ok.nc")
     np.testing.assert_allclose(dem.lon_deg, [-180, -135, -90, -45, 0, 45, 90, 135])
     assert dem.elevation_m[0, 4] == 0.0 and dem.elevation_m[0, 0] == 4.0   # 180 E moved to -180
 
@@ -163,8 +164,8 @@ def test_load_etopo_errors_name_the_file(tmp_path, kind):
         _netcdf(bad, varname="TEMPERATURE")
     elif kind == "text":
         bad.write_text("not a netcdf file\n")
-    with pytest.raises(T.TerrainFileError, match=str(bad.name)) as info:
-        T.load_etopo(bad)
+    with pytest.raises(D.TerrainFileError, match=str(bad.name)) as info:
+        D.load_etopo(bad)
     assert isinstance(info.value, DataError)  # a UserError the CLI prints as one line
     if kind == "wrong_variable":
         assert "TEMPERATURE" in str(info.value)

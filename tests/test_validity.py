@@ -164,12 +164,12 @@ def test_unstable_face_contact_falls_back_to_vertex_contact_and_is_flagged(monke
     from collections import OrderedDict
 
     from pipeline.design import load_design
-    from twin import physics, robot
+    from twin import model, robot
     from twin.indenters import make_indenter
     from twin.physics import MeshSpec, SkinSim
 
-    monkeypatch.setattr(physics, "_face_contact_faces", lambda mesh: mesh.top[mesh.top_faces])   # every face
-    monkeypatch.setattr(physics, "_MODEL_CACHE", OrderedDict())    # a model compiled with those faces
+    monkeypatch.setattr(model, "_face_contact_faces", lambda mesh: mesh.top[mesh.top_faces])   # every face
+    monkeypatch.setattr(model, "_MODEL_CACHE", OrderedDict())    # a model compiled with those faces
     sim = SkinSim(load_design("hexagon127"), make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=np.pi / 5),
                   mesh=MeshSpec(face_contact=True))
     (_, stats, truth), = robot.execute(sim, robot.press_motion(3.0))

@@ -119,7 +119,7 @@ def surface_spheres(ind: Indenter, *, skin_cell_mm: float, radius_mm: float = SP
     need[steep] = np.minimum(need[steep], STEEP_SPACING_MM)
     keep = _snap(need)
     # contact budget: every sphere under a face in contact is one more constraint. With the faces next to
-    # the clamped rim left out of face contact (twin.physics) and the smaller spheres on sharp crests, every
+    # the clamped rim left out of face contact (twin.mesh) and the smaller spheres on sharp crests, every
     # sine of the paper presses 5 mm with all its spheres and no MuJoCo warning (measured, hexagon61_sep354:
     # pi/5 12,726 spheres 0.057 mm inside, with 3,000 1.49 mm; 4 pi/15 17,334, 0.052 mm, with 15,386
     # 0.087 mm; 2 pi/5 31,445, 0.021 mm). Beyond the budget all spacings are coarsened together; what is

@@ -6,7 +6,7 @@ A :class:`Motion` is a list of :class:`Waypoint` poses ``(x_mm, y_mm, depth_mm, 
 most ``MAX_INCREMENT_MM`` per physics step (``CONTACT_INCREMENT_MM`` in contact, holding still while
 a skin vertex lags more than ``PENETRATION_LIMIT_MM`` inside the indenter), and at every capture
 waypoint the sim is settled to quasi-static equilibrium (criterion in
-:data:`twin.physics.SETTLE_TOL_MM`). The equilibrium does not
+:data:`twin.solve.SETTLE_TOL_MM`). The equilibrium does not
 depend on the rate, so the physics may move faster than the robot; the documented robot speed sets
 the frames' timestamps (path length / speed) and is recorded in metadata. With frictionless contact
 it does not depend on the path either: each captured pose is first solved directly
@@ -29,7 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twin.physics import PhysicsError, SettleStats, SkinSim, max_depth_mm
+from twin.physics import PhysicsError, SkinSim, max_depth_mm
+from twin.solve import SettleStats
 
 __all__ = ["Waypoint", "Motion", "press_motion", "tracking_motion", "press_repetitions", "execute",
            "MOTIONS", "ROBOT_SPEED_MM_S", "RAPID_SPEED_MM_S"]

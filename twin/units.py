@@ -1,6 +1,7 @@
 """Unit conversions between the project's millimetres and MuJoCo's SI units.
 
-Everything outside :mod:`twin.physics` works in mm (sensor frame). MuJoCo works in metres, kg,
+Everything outside the MuJoCo side (:mod:`twin.physics`, :mod:`twin.model`, :mod:`twin.stick`,
+:mod:`twin.solve`) works in mm (sensor frame). MuJoCo works in metres, kg,
 seconds, N and Pa; this module is the only place where the factor 1e-3 appears in arithmetic.
 """
 

@@ -19,8 +19,8 @@ partition the body. A node of two materials has one term in each. A uniform dila
 U = (K/2) V (J − 1)², pressure K (J − 1). Forces are the exact gradient, ∂v_t/∂x_i = (1/6) × the cross
 product of the opposite edges.
 
-In the twin (``MeshSpec(volumetric="nodal")``, :mod:`twin.physics`) the forces are evaluated at the
-start of every step and applied to the free vertices' slide DOFs (``qfrc_applied``, ~1.6 ms a step):
+In the twin (``MeshSpec(volumetric="nodal")``, set up in :mod:`twin.model`, applied in :mod:`twin.physics`)
+the forces are evaluated at the start of every step and applied to the free vertices' slide DOFs (``qfrc_applied``, ~1.6 ms a step):
 explicit, so the vertex masses are scaled by ``MASS_FACTOR`` for stability, the path is damped
 (``DAMPING_PER_S``) and the constraint solve is converged tighter (``SOLVER_TOLERANCE``: at MuJoCo's
 1e-6 CG stopped early and the frictionless contact of the unlocked gel chattered, force 0-0.27 N step

@@ -23,7 +23,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))  # run from a checkout without installing
 
-from twin.terrain import file_sha256, load_etopo, relief_from_dem  # noqa: E402
+from twin.dem import load_etopo  # noqa: E402
+from twin.terrain import file_sha256, relief_from_dem  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,330 @@
+"""The skin module's MuJoCo model, built in code with :class:`mujoco.MjSpec`, and its per-process cache.
+
+What :func:`build` compiles from a :class:`~twin.mesh.MeshSpec` mesh (:mod:`twin.mesh`), a design and an
+indenter; :class:`twin.physics.SkinSim` runs it.
+
+* Two 3-D flexes share the vertices: ``skin`` (the top layer, thickness T, the skin's E and ν) and
+  ``gel`` (everything below, the gel's E and ν), MuJoCo's stable Neo-Hookean model
+  (``elastic3d = 1``), the discrete integrator with the CG solver. St Venant–Kirchhoff (MuJoCo's
+  default) softens under compression and lets elements collapse: a Gaussian (σ² = 10) pressed 5 mm
+  inverted 302 gel and 6 skin tetrahedra (min det F = −1.15), squashed the skin to 0.4 T and left
+  the centre marker 1.08 mm below the outer skin instead of T + H = 2.5 mm; with stable
+  Neo-Hookean min det F = 0.58 (gel) / 0.86 (skin) and the gel flows sideways. Vertices on the bottom (bonded to the acrylic) and on the lateral
+  boundary (clamped by the rigid mount) are fixed to the world body.
+* Contact, two layers. (1) Every free vertex of the outer surface carries a small sphere (radius
+  ``CONTACT_RADIUS_MM``) whose outermost point is the vertex; the indenter is a height field of its
+  true shape (:mod:`twin.indenters`) on a mocap body. (2) Vertices alone let a convex tip or crest
+  poke through the flat faces between them (chord sag κL²/8: 0.29 mm under the σ² = 10 cap, ~2 mm
+  under the σ² = 5/3 tip) and let vertices slip sideways through the height field's prism walls on
+  steep flanks; so the outer faces also form a 2-D flex without stiffness that collides with spheres
+  placed on the indenter's convex and steep parts (:mod:`twin.contact`; ``MeshSpec.face_contact``,
+  off by default: on the 1.5 mm mesh it trades face penetration for vertices held off the cap, see
+  ``MeshSpec``).
+  The volumetric flexes themselves do not collide (element contact of the whole skin layer produced
+  4,600-6,600 contacts on a σ² = 10 press and the discrete integrator's M + K solve failed:
+  mjWARN_INERTIA, then NaN accelerations, at vertex mass scales 0.05-1).
+* With friction the indenter is a heavy driven body instead of a mocap, and every free outer vertex
+  has an (inactive) point constraint to it that the Coulomb check switches on (:mod:`twin.stick`).
+* Mass scaling (:mod:`twin.materials`): ``m_i = MASS_SCALE · dt² · K_ii``; gravity off.
+* Volumetric locking: linear tetrahedra lock as ν → 0.5 (uniform ν = 0.49 gel: 2.3× the layer solution's
+  force). ``MeshSpec(volumetric="nodal")`` gives the flexes each material's shear modulus at ν = 0.15 and
+  carries the rest of its bulk modulus on averaged nodal volume ratios (:mod:`twin.volumetric`; Bonet &
+  Burton 1998): explicit forces on the vertices' slide DOFs, so with it the vertex masses are
+  ``volumetric.MASS_FACTOR`` × heavier, the path is damped and the constraint solve converged tighter.
+* Compiled models are cached per process (design, mesh, indenter, timestep, friction): a second sim
+  of the same set-up copies the model instead of compiling it (~0.1 s instead of 0.8-1.3 s).
+
+MuJoCo's world frame is the sensor frame rotated 180° about x (the sensor looks down at the
+indenter on the desk): world = (x, -y, -z)_sensor (:data:`_FLIP`). Lengths cross to metres only via
+:mod:`twin.units`.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from collections import OrderedDict
+
+import numpy as np
+
+from pipeline.design import SensorDesign
+from twin import contact, materials, units, volumetric
+from twin.indenters import COLLISION_SPACING_MM, Indenter
+from twin.mesh import MeshSpec, PhysicsError, _face_contact_faces, _grad_shape, _Mesh
+
+__all__ = ["CONTACT_RADIUS_MM", "build", "load", "cache_key", "flex_elasticity"]
+
+CONTACT_RADIUS_MM = 0.25     # vertex contact sphere > the 0.2 mm height-field cell, so it always spans several
+                             # prisms (0.12 mm let the stiff apex vertex slip through a prism wall: σ² = 10, 5 mm,
+                             # 0.75 mm inside); slope error r(1/cos θ - 1) <= 0.10 mm up to 45°
+ELASTIC3D_STABLE_NEO_HOOKEAN = 1   # MuJoCo flex ``elastic3d``: 0 = St Venant–Kirchhoff, 1 = stable Neo-Hookean
+CONTACT_TIMECONST_STEPS = 2.0  # contact solref time constant in physics steps (the smallest MuJoCo allows)
+CONTACT_DAMPRATIO = 0.7
+_FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
+MODEL_CACHE_SIZE = 4         # compiled models kept per process (a press sweep re-presses one design/indenter at
+                             # several yaws; compiling costs ~0.5-0.9 s of a ~3 s press, a copy ~0.01 s)
+_MODEL_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
+_DERIVED = ("_free", "_qadr", "_top_geom", "_hmin", "_rest_free_m", "_col_top", "_col_bottom", "_is_free_top",
+            "_n_surface_spheres", "_ind_qadr", "_ind_dadr", "_stick_nodes", "_stick_free", "_stick_eq",
+            "_stick_k", "_stick_geom", "_vol")
+STICK_DAMPRATIO = 1.0       # the stick constraint's damping ratio (time constant as the contacts')
+STICK_TIMECONST_STEPS = 4.0
+DRIVEN_INDENTER_MASS_KG = 100.0   # with friction: the indenter's mass, >> the skin's scaled vertex masses, so contact
+                                  # forces do not deflect it within a step (its position is re-imposed anyway)
+# collision bits: vertex spheres (2/1) meet the height field (1/2); outer faces (4/8) meet surface spheres (8/4)
+_BIT_FACES, _BIT_SPHERES = 4, 8
+
+
+def cache_key(design: SensorDesign, spec: MeshSpec, indenter: Indenter, timestep_s: float, friction: float):
+    """Key of the compiled model in :data:`_MODEL_CACHE`; None (no caching) for indenters whose
+    parameters are not plain scalars (e.g. a terrain patch's height map)."""
+    params = sorted(indenter.params.items())
+    if not all(isinstance(v, (int, float, str, bool)) for _, v in params):
+        return None
+    return (repr(design), repr(spec), indenter.name, repr(params), timestep_s, friction)
+
+
+def load(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec, timestep_s: float,
+         friction: float):
+    """The model of this set-up, from the per-process cache or compiled (:func:`build`): ``(model, derived,
+    from_cache)``. A cached model is copied (``mj_copyModel``), so each sim may change its own; ``derived``
+    (the arrays :func:`build` returns beside the model) is shared, never changed by a sim."""
+    key = cache_key(design, spec, indenter, timestep_s, float(friction))
+    hit = _MODEL_CACHE.get(key) if key is not None else None
+    if hit is None:
+        model, derived = build(design, indenter, mesh, spec, timestep_s, friction)
+        if key is not None:
+            # a pristine copy: a sim changes its own model as it runs (stick anchors, contacts switched off)
+            _MODEL_CACHE[key] = (copy.copy(model), derived)
+            while len(_MODEL_CACHE) > MODEL_CACHE_SIZE:
+                _MODEL_CACHE.popitem(last=False)
+        return model, derived, False
+    _MODEL_CACHE.move_to_end(key)
+    return copy.copy(hit[0]), hit[1], True
+
+
+def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec, timestep_s: float,
+          friction: float):
+    """Compile the skin module's model (module notes): ``(model, derived)`` with ``derived`` the index arrays
+    the sim needs beside it, keyed by the sim's attribute names (:data:`_DERIVED`)."""
+    import mujoco as mj
+
+    m, d = mesh, design
+    dt = timestep_s
+    V = len(m.nodes_mm)
+    X_m = units.mm_to_m(m.nodes_mm * _FLIP)
+    kd = np.zeros(V)
+    ks = np.zeros(V)      # shear part: a surface vertex's stiffness against sliding along the indenter
+    for tets, mat in ((m.tets_skin, materials.skin_material(d)), (m.tets_gel, materials.gel_material(d))):
+        E, nu = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
+        lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+        vol, g, _ = _grad_shape(X_m[tets])
+        np.add.at(kd, tets.ravel(), ((lam + 2 * mu) * vol[:, None] * np.sum(g * g, axis=2)).ravel())
+        np.add.at(ks, tets.ravel(), (mu * vol[:, None] * np.sum(g * g, axis=2)).ravel())
+    mjspec = mj.MjSpec()
+    mjspec.modelname = f"skin_{d.name}"
+    o = mjspec.option
+    o.integrator = mj.mjtIntegrator.mjINT_DISCRETE
+    # CG is ~3x faster a step on the flex; with the stick constraints its inexact solves leave the skin
+    # vibrating (0.03 mm a step) and a press never settles, where Newton's converge (measured: 0.001 mm)
+    o.solver = mj.mjtSolver.mjSOL_NEWTON if friction > 0 else mj.mjtSolver.mjSOL_CG
+    o.timestep = dt
+    o.gravity = [0.0, 0.0, 0.0]
+    o.tolerance = 1e-6
+    volumetric_solver_options(spec, o)
+    mjspec.memory = 256 * 1024 * 1024
+    is_top = np.zeros(V, bool)
+    is_top[m.top] = True
+    condim = 1            # friction acts through the stick constraints (_update_stick), not MuJoCo's cone
+    r_m = float(units.mm_to_m(CONTACT_RADIUS_MM))
+    vertbody, vert = [], np.zeros((V, 3))
+    free = np.nonzero(~m.pinned)[0]
+    for n in range(V):
+        if m.pinned[n]:
+            vertbody.append("world")
+            vert[n] = X_m[n]
+            continue
+        b = mjspec.worldbody.add_body(name=f"v{n}", pos=X_m[n].tolist())
+        for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1)):
+            b.add_joint(type=mj.mjtJoint.mjJNT_SLIDE, axis=list(axis))
+        b.mass = materials.MASS_SCALE * volumetric_mass_factor(spec) * dt * dt * kd[n]
+        b.inertia = [1e-15] * 3
+        b.explicitinertial = True
+        vertbody.append(f"v{n}")
+        if is_top[n]:
+            gm = b.add_geom(type=mj.mjtGeom.mjGEOM_SPHERE, size=[r_m, 0, 0], pos=[0, 0, r_m])
+            gm.mass, gm.contype, gm.conaffinity, gm.condim = 0.0, 2, 1, condim
+            gm.friction = [friction, 0.005, 0.0001]
+            gm.group = 3
+    for name, tets, mat in (("skin", m.tets_skin, materials.skin_material(d)),
+                            ("gel", m.tets_gel, materials.gel_material(d))):
+        f = mjspec.add_flex()
+        f.name, f.dim = name, 3
+        f.vertbody = vertbody
+        f.vert = vert.ravel().tolist()
+        f.elem = tets.ravel().tolist()
+        f.young, f.poisson = flex_elasticity(spec, mat)
+        f.elastic3d = ELASTIC3D_STABLE_NEO_HOOKEAN
+        f.damping = materials.RAYLEIGH_DAMPING_S
+        f.contype = f.conaffinity = 0
+        f.selfcollide = mj.mjtFlexSelf.mjFLEXSELF_NONE
+        f.radius = 1e-6
+    if spec.face_contact:
+        # the outer faces as a 2-D flex without stiffness: what the indenter's surface spheres collide with
+        f = mjspec.add_flex()
+        f.name, f.dim = "outer_faces", 2
+        f.vertbody = vertbody
+        f.vert = vert.ravel().tolist()
+        f.elem = _face_contact_faces(m).ravel().tolist()
+        f.young, f.elastic2d = 0.0, 0
+        f.contype, f.conaffinity, f.condim = _BIT_FACES, _BIT_SPHERES, condim
+        f.friction = [friction, 0.005, 0.0001]
+        f.radius = 1e-6
+        f.selfcollide = mj.mjtFlexSelf.mjFLEXSELF_NONE
+    # indenter: height field of its own-frame contact face on a mocap body
+    x, y, z = indenter.grid(COLLISION_SPACING_MM)
+    z = np.where(np.isfinite(z), z, np.nanmin(z))
+    hmin = float(z.min())
+    span = max(float(z.max()) - hmin, 1e-3)
+    hx, hy = indenter.half_size_mm
+    mjspec.add_hfield(name="indenter", size=[float(units.mm_to_m(hx)), float(units.mm_to_m(hy)),
+                                           float(units.mm_to_m(span)), float(units.mm_to_m(2.0))],
+                    nrow=z.shape[0], ncol=z.shape[1], userdata=((z - hmin) / span).ravel().tolist())
+    if friction > 0:
+        # Friction acts on relative velocity, and a mocap body has none (it is teleported): the skin would
+        # be held where it is, not dragged along. With friction the indenter is a heavy body on three
+        # slide joints and a hinge whose positions are prescribed every step and whose velocity is the
+        # commanded increment over the step (see step()).
+        body = mjspec.worldbody.add_body(name="indenter")
+        for axis in ((1, 0, 0), (0, 1, 0), (0, 0, 1)):
+            body.add_joint(type=mj.mjtJoint.mjJNT_SLIDE, axis=list(axis), name=f"indenter_{'xyz'[axis.index(1)]}")
+        body.add_joint(type=mj.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], name="indenter_yaw")
+        body.mass = DRIVEN_INDENTER_MASS_KG
+        body.inertia = [DRIVEN_INDENTER_MASS_KG * 1e-4] * 3
+        body.explicitinertial = True
+        # stick: one (inactive) point constraint per free outer vertex, switched on by the Coulomb
+        # check in _update_stick while the vertex sticks to the indenter at the point where it touched
+        for n in free[is_top[free]]:
+            e = mjspec.add_equality()
+            e.type, e.objtype = mj.mjtEq.mjEQ_CONNECT, mj.mjtObj.mjOBJ_BODY
+            e.name1, e.name2 = f"v{n}", "indenter"
+            e.active = False
+            e.solref = [STICK_TIMECONST_STEPS * dt, STICK_DAMPRATIO]
+            e.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+    else:
+        body = mjspec.worldbody.add_body(name="indenter", mocap=True)
+    g = body.add_geom(type=mj.mjtGeom.mjGEOM_HFIELD, hfieldname="indenter",
+                      pos=[0, 0, float(units.mm_to_m(hmin))])
+    g.contype, g.conaffinity, g.condim, g.priority = 1, 2, condim, 1
+    g.friction = [friction, 0.005, 0.0001]
+    g.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
+    g.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+    n_surface_spheres = 0
+    if spec.face_contact:
+        cell = spec.core_mm or spec.fine_mm
+        centres, radii = contact.surface_spheres(indenter, skin_cell_mm=cell, with_radii=True)
+        n_surface_spheres = int(len(centres))
+        for c, r_s in zip(units.mm_to_m(centres), units.mm_to_m(radii)):
+            gs = body.add_geom(type=mj.mjtGeom.mjGEOM_SPHERE, size=[float(r_s), 0, 0], pos=c.tolist())
+            gs.contype, gs.conaffinity, gs.condim, gs.priority = _BIT_SPHERES, _BIT_FACES, condim, 1
+            gs.friction = [friction, 0.005, 0.0001]
+            gs.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
+            gs.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+            gs.mass, gs.group = 0.0, 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # MuJoCo's note on flexes without equality constraints
+        model = mjspec.compile()
+    qadr = model.jnt_qposadr[:len(free) * 3].reshape(-1, 3)
+    vol = build_volumetric(design, mesh, spec, X_m, free, qadr)
+    ind_qadr = ind_dadr = None
+    stick_nodes = stick_free = stick_eq = np.zeros(0, np.int64)
+    stick_k = np.zeros(0)
+    stick_geom = np.zeros(0, np.int64)
+    if friction > 0:
+        jid = [model.joint(f"indenter_{n}").id for n in ("x", "y", "z", "yaw")]
+        ind_qadr = model.jnt_qposadr[jid].copy()
+        ind_dadr = model.jnt_dofadr[jid].copy()
+        free_pos = {int(n): i for i, n in enumerate(free)}
+        stick_nodes = free[is_top[free]]
+        stick_free = np.array([free_pos[int(n)] for n in stick_nodes], dtype=np.int64)
+        stick_k = ks[stick_nodes]
+        stick_geom = np.array([model.body(f"v{n}").geomadr[0] for n in stick_nodes])
+        stick_eq = np.arange(len(stick_nodes))    # the model's only equalities, in that order
+        assert model.neq == len(stick_eq)
+    top_geom = {}
+    for n in free[is_top[free]]:
+        top_geom[model.body(f"v{n}").geomadr[0]] = n
+    # direct solves: rest world positions (m) of the free vertices, the outer-surface vertex and the
+    # window vertex of each vertex's column (the mesh is a tensor grid: columns share x-y)
+    rest_free_m = X_m[free]
+    key = np.round(m.nodes_mm[:, :2], 6)
+    _, col = np.unique(key, axis=0, return_inverse=True)
+    col = col.ravel()
+    top_of = np.full(col.max() + 1, -1)
+    top_of[col[m.top]] = m.top
+    bottom_of = np.full(col.max() + 1, -1)
+    zmin = np.full(col.max() + 1, np.inf)
+    for i, (c, z) in enumerate(zip(col, m.nodes_mm[:, 2])):
+        if z < zmin[c]:
+            zmin[c], bottom_of[c] = z, i
+    col_top, col_bottom = top_of[col], bottom_of[col]
+    is_free_top = np.zeros(V, bool)
+    is_free_top[free] = is_top[free]
+    return model, {"_free": free, "_qadr": qadr, "_top_geom": top_geom, "_hmin": hmin,
+                   "_rest_free_m": rest_free_m, "_col_top": col_top, "_col_bottom": col_bottom,
+                   "_is_free_top": is_free_top, "_n_surface_spheres": n_surface_spheres, "_ind_qadr": ind_qadr,
+                   "_ind_dadr": ind_dadr, "_stick_nodes": stick_nodes, "_stick_free": stick_free,
+                   "_stick_eq": stick_eq, "_stick_k": stick_k, "_stick_geom": stick_geom, "_vol": vol}
+
+
+# ----- nodal volumetric stiffness (twin.volumetric) ------------------------------------------
+
+def flex_elasticity(spec: MeshSpec, mat) -> tuple[float, float]:
+    """Young's modulus (Pa) and Poisson ratio the flex gets for a material: all of it, or with
+    ``MeshSpec.volumetric == "nodal"`` its shear modulus at ν = ``volumetric.NU_DEV`` (the rest of the
+    bulk stiffness goes to the nodal term, :mod:`twin.volumetric`)."""
+    E, nu = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
+    if spec.volumetric == "nodal" and nu > volumetric.NU_DEV:
+        return volumetric.bulk_split(E, nu, volumetric.NU_DEV)[0], volumetric.NU_DEV
+    return E, nu
+
+
+def volumetric_solver_options(spec: MeshSpec, o) -> None:
+    """Nodal volumetric forces need the constraint solve converged tighter: at tolerance 1e-6 CG stops
+    early and the frictionless contact of the unlocked gel chatters (sphere R 10 mm, 1 mm, ν = 0.49:
+    force 0-0.27 N step to step); at ``volumetric.SOLVER_TOLERANCE`` it holds 0.193-0.194 N, as Newton
+    does at twice the time a step."""
+    if spec.volumetric == "nodal":
+        o.tolerance = volumetric.SOLVER_TOLERANCE
+        o.iterations = volumetric.SOLVER_ITERATIONS
+
+
+def volumetric_mass_factor(spec: MeshSpec) -> float:
+    """Vertex mass multiplier with nodal volumetric stiffness (``volumetric.MASS_FACTOR``), else 1."""
+    return volumetric.MASS_FACTOR if spec.volumetric == "nodal" else 1.0
+
+
+def build_volumetric(design: SensorDesign, mesh: _Mesh, spec: MeshSpec, X_m: np.ndarray, free: np.ndarray,
+                     qadr: np.ndarray):
+    """The nodal volumetric energy of the materials stiffer in bulk than ``volumetric.NU_DEV`` and where
+    its forces go (the free vertices' slide DOFs ``qadr``); None unless ``MeshSpec.volumetric == "nodal"``."""
+    mode = spec.volumetric
+    if mode == "element":
+        return None
+    if mode != "nodal":
+        raise PhysicsError(f"MeshSpec.volumetric {mode!r}: 'element' or 'nodal'")
+    m, d = mesh, design
+    groups: dict[tuple[float, float], list] = {}    # one term per node and material (equal materials merged)
+    for tets, mat in ((m.tets_skin, materials.skin_material(d)), (m.tets_gel, materials.gel_material(d))):
+        E, nu = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
+        if nu > volumetric.NU_DEV and len(tets):
+            groups.setdefault((E, nu), []).append(tets)
+    if not groups:
+        return None
+    groups = [(np.vstack(t), volumetric.bulk_split(E, nu, volumetric.NU_DEV)[1]) for (E, nu), t in groups.items()]
+    active = ~m.pinned if volumetric.FREE_NODES_ONLY else None
+    nv = volumetric.NodalVolume.build(X_m, groups, active)
+    free_pos = -np.ones(len(m.nodes_mm), np.int64)
+    free_pos[free] = np.arange(len(free))
+    keep = free_pos[nv.pair_node] >= 0
+    return {"nv": nv, "pairs": np.nonzero(keep)[0], "pair_dof": qadr[free_pos[nv.pair_node[keep]]]}
