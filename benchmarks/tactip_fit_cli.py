@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -36,78 +37,34 @@ def _cached(cache: Path, name: str, key: str, fn):
 
 def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
              skip_unlabelled: bool = False) -> dict:
+    """Fit the monocular twin to labelled real taps, stage by stage (pin spacing, camera from the reference
+    tap, skin and tap physics, camera from every training tap, appearance), each stage cached; write the
+    fitted design TOML to ``out`` and the summary to ``OUT.fit.json``. Returns the summary."""
     from tqdm import tqdm
 
     design = load_design(design_name)
     check_monocular(design)
     ctx = FitContext(frames, targets, design, progress=progress, skip_unlabelled=skip_unlabelled, log=log)
-    cache = Path(str(out) + ".cache")
-    base_key = ctx.key()
     t0 = time.time()
     log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
         f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
         f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
     bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 5, desc="fit-twin", unit="step", disable=not progress)
+    st = _Stages(Path(str(out) + ".cache"), ctx.key(), bar, log)
     twin0 = design.twin_params()
-
-    def stage0():
-        sep, scores = fit_layout(ctx, twin0, bar)
-        return {"separation_mm": sep, "scores": scores}
-
-    s0, hit = _cached(cache, "0_layout", base_key, stage0)
-    if hit:
-        bar.update(len(LAYOUT_SEPARATIONS_MM))
-    log(f"  pin spacing on the dome{' (cached)' if hit else ''}: {s0['separation_mm']:.2f} mm "
-        f"(scores " + ", ".join(f"{b:.1f}: {a:.2f}" for a, b in s0["scores"]) + ")")
+    s0 = _layout_stage(st, ctx, twin0)
     design = apply_params(design, {"separation_mm": s0["separation_mm"]})
     ctx = ctx.with_design(design)
-
-    def stage1():
-        d, ref_xy, rep = fit_camera_reference(ctx, twin0)
-        return {"cam": dict(zip(CAM_KEYS, map(float, camera_vector(d)))), "ref_xy": ref_xy.tolist(), "report": rep}
-
-    s1, hit = _cached(cache, "1_camera_reference", digest(base_key, s0["separation_mm"]), stage1)
-    bar.update(1)
+    s1 = _camera_reference_stage(st, ctx, design, twin0, s0)
     d1 = apply_params(design, s1["cam"])  # (design carries the fitted spacing)
-    ctx.set_reference(np.asarray(s1["ref_xy"], dtype=np.float64))
-    ident = [int(np.isfinite(x[:, 0]).sum()) for x in ctx.real_xy]
-    log(f"  camera from the reference tap{' (cached)' if hit else ''}: {s1['report']['matched']} markers matched, "
-        f"RMS {s1['report']['rms_px']:.2f} px; identified per frame: min {min(ident)}, median "
-        f"{int(np.median(ident))} of {design.marker_count}")
-
-    def stage23():
-        tw, rep = fit_physics(ctx, d1, twin0, bar)
-        return {"twin": tw, "report": rep}
-
-    s23, hit = _cached(cache, "2_physics", digest(base_key, s1["cam"]), stage23)
-    if hit:
-        bar.update(24 + 4)
+    s23 = _physics_stage(st, ctx, d1, twin0, s1)
     twin = s23["twin"]
-
-    def stage4():
-        d, rep = fit_camera_all(ctx, d1, twin)
-        return {"cam": rep["values"], "report": rep}
-
-    s4, hit = _cached(cache, "4_camera_all", digest(base_key, s1["cam"], twin), stage4)
-    bar.update(1)
+    s4 = _camera_all_stage(st, ctx, d1, twin, s1)
     d4 = apply_params(design, s4["cam"])
-
-    def stage5():
-        tw, rep = fit_appearance(ctx, d4, twin)
-        return {"twin": tw, "report": rep}
-
-    s5, hit = _cached(cache, "5_appearance", digest(base_key, s4["cam"], twin), stage5)
-    bar.update(1)
+    s5 = _appearance_stage(st, ctx, d4, twin, s4)
     bar.close()
     fitted = apply_params(d4, twin=s5["twin"], name=design.name + "_fitted")
-    train_rms = ctx.rms(fitted, ctx.train, s5["twin"])
-    held_rms = ctx.rms(fitted, ctx.held, s5["twin"])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    header = (f"# Fitted by `stereotactip fit-twin` from {len(ctx.frames)} labelled frames "
-              f"({len(ctx.train)} train, {len(ctx.held)} held out).\n"
-              f"# Pin-tip RMS (projected twin vs identified real markers): train {train_rms:.2f} px, "
-              f"held out {held_rms:.2f} px.\n")
-    atomic_write_text(out, header + to_toml(fitted))
+    train_rms, held_rms = _write_fitted(out, ctx, fitted, s5["twin"])
     phys = s23["report"]
     summary = {
         "design": design.name, "out": str(out), "frames": len(ctx.frames),
@@ -125,6 +82,93 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
     atomic_write_json(Path(str(out) + ".fit.json"), summary, indent=1)
     _log_summary(log, summary, s4["report"], twin, phys, out)
     return summary
+
+
+class _Stages(NamedTuple):
+    """What every stage shares: the cache folder, the key of the frames and design, the progress bar, the log."""
+
+    cache: Path
+    base_key: str
+    bar: Any
+    log: Callable
+
+
+def _layout_stage(st: _Stages, ctx: FitContext, twin0: dict) -> dict:
+    """Stage 0: the pin spacing on the dome that best explains the reference tap."""
+    def fit():
+        sep, scores = fit_layout(ctx, twin0, st.bar)
+        return {"separation_mm": sep, "scores": scores}
+
+    s0, hit = _cached(st.cache, "0_layout", st.base_key, fit)
+    if hit:
+        st.bar.update(len(LAYOUT_SEPARATIONS_MM))
+    st.log(f"  pin spacing on the dome{' (cached)' if hit else ''}: {s0['separation_mm']:.2f} mm "
+           f"(scores " + ", ".join(f"{b:.1f}: {a:.2f}" for a, b in s0["scores"]) + ")")
+    return s0
+
+
+def _camera_reference_stage(st: _Stages, ctx: FitContext, design, twin0: dict, s0: dict) -> dict:
+    """Stage 1: the camera from the reference tap; its matched markers become the reference that identifies
+    every real frame (set on ``ctx``)."""
+    def fit():
+        d, ref_xy, rep = fit_camera_reference(ctx, twin0)
+        return {"cam": dict(zip(CAM_KEYS, map(float, camera_vector(d)))), "ref_xy": ref_xy.tolist(), "report": rep}
+
+    s1, hit = _cached(st.cache, "1_camera_reference", digest(st.base_key, s0["separation_mm"]), fit)
+    st.bar.update(1)
+    ctx.set_reference(np.asarray(s1["ref_xy"], dtype=np.float64))
+    ident = [int(np.isfinite(x[:, 0]).sum()) for x in ctx.real_xy]
+    st.log(f"  camera from the reference tap{' (cached)' if hit else ''}: {s1['report']['matched']} markers matched, "
+           f"RMS {s1['report']['rms_px']:.2f} px; identified per frame: min {min(ident)}, median "
+           f"{int(np.median(ident))} of {design.marker_count}")
+    return s1
+
+
+def _physics_stage(st: _Stages, ctx: FitContext, d1, twin0: dict, s1: dict) -> dict:
+    """Stages 2-3: skin bending and the tap's depth offset and tilt frame, with the reference camera."""
+    def fit():
+        tw, rep = fit_physics(ctx, d1, twin0, st.bar)
+        return {"twin": tw, "report": rep}
+
+    s23, hit = _cached(st.cache, "2_physics", digest(st.base_key, s1["cam"]), fit)
+    if hit:
+        st.bar.update(24 + 4)
+    return s23
+
+
+def _camera_all_stage(st: _Stages, ctx: FitContext, d1, twin: dict, s1: dict) -> dict:
+    """Stage 4: the camera refitted on every training tap with the fitted physics."""
+    def fit():
+        d, rep = fit_camera_all(ctx, d1, twin)
+        return {"cam": rep["values"], "report": rep}
+
+    s4, _ = _cached(st.cache, "4_camera_all", digest(st.base_key, s1["cam"], twin), fit)
+    st.bar.update(1)
+    return s4
+
+
+def _appearance_stage(st: _Stages, ctx: FitContext, d4, twin: dict, s4: dict) -> dict:
+    """Stage 5: marker and background appearance from the real frames' image statistics."""
+    def fit():
+        tw, rep = fit_appearance(ctx, d4, twin)
+        return {"twin": tw, "report": rep}
+
+    s5, _ = _cached(st.cache, "5_appearance", digest(st.base_key, s4["cam"], twin), fit)
+    st.bar.update(1)
+    return s5
+
+
+def _write_fitted(out: Path, ctx: FitContext, fitted, twin: dict) -> tuple[float, float]:
+    """Write the fitted design (TOML, its residuals in the header); returns (train, held-out) pin-tip RMS px."""
+    train_rms = ctx.rms(fitted, ctx.train, twin)
+    held_rms = ctx.rms(fitted, ctx.held, twin)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    header = (f"# Fitted by `stereotactip fit-twin` from {len(ctx.frames)} labelled frames "
+              f"({len(ctx.train)} train, {len(ctx.held)} held out).\n"
+              f"# Pin-tip RMS (projected twin vs identified real markers): train {train_rms:.2f} px, "
+              f"held out {held_rms:.2f} px.\n")
+    atomic_write_text(out, header + to_toml(fitted))
+    return train_rms, held_rms
 
 
 def _log_summary(log, summary: dict, c: dict, twin: dict, phys: dict, out: Path) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import html
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -114,23 +115,62 @@ def twin_frame_cell(design, pose, params: dict, seed: int) -> tuple:
 
 def validate(frames, targets, design_name, out: Path, *, progress: bool = True, log=print,
              skip_unlabelled: bool = False, engine=None) -> dict:
+    """Tap and render the twin at every labelled pose, compare it marker by marker and image by image with
+    the real frames and with the static and ridge baselines; write the overlays, ``summary.json``, the
+    reports and ``errors.png``. Returns the summary."""
     t0 = time.time()
     design = load_design(design_name)
     ctx = FitContext(frames, targets, design, progress=progress, skip_unlabelled=skip_unlabelled, log=log)
     tw = design.twin_params()
     out.mkdir(parents=True, exist_ok=True)
-    n = len(ctx.frames)
-    held_set = set(int(i) for i in ctx.held)
-    # real reference ids: the real reference frame's markers nearest the twin's projected pin tips
+    uv_ref, ref_real = _real_reference(ctx, design, tw)
+    twin = _twin_frames(ctx, design, tw, engine, progress)
+    ref_twin, twin_xy = _twin_identification(ctx, twin, uv_ref)
+    poses = [f.pose for f in ctx.frames]
+    base = baselines(ctx.real_xy, poses, ctx.train, ctx.held)
+    cmp = _compare_frames(ctx, twin, twin_xy, ref_twin, ref_real, base, out)
+    held, held_common = _held_out_rms(cmp)
+    stats = _image_stats(cmp.per_frame)
+    n_params = {"twin": 1 + len(CAM_KEYS) + 4, "static": 2 * design.marker_count,
+                "ridge": 2 * design.marker_count * ridge_features(poses[:1]).shape[1]}
+    summary = {"design": design.name, "frames": len(ctx.frames), "train": len(ctx.train), "held_out": len(ctx.held),
+               "held_out_frames": [ctx.frames[i].path.name for i in ctx.held],
+               "reference": ctx.frames[ctx.ref].path.name,
+               "held_out_rms_px": held, "held_out_rms_px_common_markers": held_common,
+               "fitted_position_parameters": n_params, "image_stats_median": stats,
+               "goals": _goals(held_common, stats),
+               "per_frame": cmp.per_frame, "seconds": time.time() - t0}
+    atomic_write_json(out / "summary.json", summary, indent=1)
+    _plot(out, cmp.held_err, cmp.per_frame)
+    _report(out, summary)
+    _log_summary(log, summary, out)
+    return summary
+
+
+def _real_reference(ctx: FitContext, design, tw: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Ids of the real reference frame: its markers nearest the twin's projected pin tips. Sets them as the
+    context's reference (which identifies every real frame) and returns (projected tips, real reference)."""
     p_ref, _ = ctx.tap(ctx.ref, tw)
     uv_ref = project_markers(design, p_ref)
     idx = identify_by_reference(ctx.blobs[ctx.ref].xy_px, uv_ref)
     ref_real = np.full_like(uv_ref, np.nan)
     ref_real[idx >= 0] = ctx.blobs[ctx.ref].xy_px[idx[idx >= 0]]
     ctx.set_reference(ref_real)
-    # twin renders, detections; twin reference ids from its truth
-    # each frame's tap + render + detection is an independent cell of the project's one executor (local
-    # processes by default, a Dask cluster with --cluster)
+    return uv_ref, ref_real
+
+
+class _TwinFrames(NamedTuple):
+    """The twin's frame at every labelled pose (frame order)."""
+
+    images: list
+    blobs: list
+    truth_uv: list      # the pin tips' exact projections (px)
+
+
+def _twin_frames(ctx: FitContext, design, tw: dict, engine, progress: bool) -> _TwinFrames:
+    """Tap, render and detect the twin at every pose; each frame is an independent cell of the project's one
+    executor (local processes by default, a Dask cluster with --cluster). A tap that fails stops the run."""
+    n = len(ctx.frames)
     params = {**design.twin_params(), **tw}
     jobs = [(design, ctx.frames[i].pose, params, 1000 + i) for i in range(n)]
     outcomes = run_cells(twin_frame_cell, jobs, engine=engine, desc="validate", progress=progress)
@@ -141,91 +181,121 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
     for o in outcomes:
         p, ax, twin_imgs[o.index], twin_blobs[o.index], truth_uv[o.index] = o.result
         ctx.remember_tap(o.index, tw, (p, ax))
-    idx = identify_by_reference(twin_blobs[ctx.ref].xy_px, truth_uv[ctx.ref])
+    return _TwinFrames(twin_imgs, twin_blobs, truth_uv)
+
+
+def _twin_identification(ctx: FitContext, twin: _TwinFrames, uv_ref: np.ndarray) -> tuple[np.ndarray, list]:
+    """The twin's reference ids from its truth, then the same chained identification as the real frames (pose
+    order, nearest identified pose). Returns (twin reference positions, positions per frame)."""
+    idx = identify_by_reference(twin.blobs[ctx.ref].xy_px, twin.truth_uv[ctx.ref])
     ref_twin = np.full_like(uv_ref, np.nan)
-    ref_twin[idx >= 0] = twin_blobs[ctx.ref].xy_px[idx[idx >= 0]]
-    # the same chained identification as the real frames (pose order, nearest identified pose)
-    twin_xy = identify_chain(twin_blobs, [f.pose for f in ctx.frames], ctx.ref, ref_twin)
+    ref_twin[idx >= 0] = twin.blobs[ctx.ref].xy_px[idx[idx >= 0]]
+    return ref_twin, identify_chain(twin.blobs, [f.pose for f in ctx.frames], ctx.ref, ref_twin)
+
+
+class _Comparison(NamedTuple):
+    per_frame: list         # one row per frame (the summary's per_frame)
+    held_err: dict          # method -> per held-out frame (M, 2) position errors (px)
+    disp_err_held: list     # per held-out frame, the twin's displacement error (M, 2) (px)
+
+
+def _compare_frames(ctx: FitContext, twin: _TwinFrames, twin_xy: list, ref_twin, ref_real, base: dict,
+                    out: Path) -> _Comparison:
+    """Per frame: image statistics, position and displacement errors of the twin (and on held-out frames of the
+    baselines and the projected truth); write its overlay."""
     real_xy = ctx.real_xy
-    poses = [f.pose for f in ctx.frames]
-    base = baselines(real_xy, poses, ctx.train, ctx.held)
+    held_set = set(int(i) for i in ctx.held)
     per_frame = []
     held_err = {"twin": [], "twin_truth": [], "static": [], "ridge": []}
     disp_err_held = []
     for i, f in enumerate(ctx.frames):
-        rs = frame_stats(ctx.greys[i], ctx.blobs[i])
-        ts = frame_stats(twin_imgs[i], twin_blobs[i])
         err = twin_xy[i] - real_xy[i]
         derr = (twin_xy[i] - ref_twin) - (real_xy[i] - ref_real)
-        ok = np.all(np.isfinite(err), axis=1)
-        e = np.linalg.norm(err[ok], axis=1)
-        row = {"frame": f.path.name, "split": "held_out" if i in held_set else "train",
-               "depth_mm": f.pose.depth_mm, "tilt_x_deg": f.pose.tilt_x_deg, "tilt_y_deg": f.pose.tilt_y_deg,
-               "real": rs, "twin": ts,
-               "identified_real": int(np.isfinite(real_xy[i][:, 0]).sum()),
-               "identified_twin": int(np.isfinite(twin_xy[i][:, 0]).sum()), "compared": int(ok.sum()),
-               "position_rms_px": _rms(err), "position_median_px": float(np.median(e)) if len(e) else None,
-               "position_p95_px": float(np.percentile(e, 95)) if len(e) else None,
-               "displacement_rms_px": _rms(derr),
-               "real_displacement_rms_px": _rms(real_xy[i] - ref_real)}
+        row = _frame_row(ctx, twin, i, twin_xy[i], err, derr, real_xy[i] - ref_real, i in held_set)
         if i in held_set:
             k = list(ctx.held).index(i)
             row["static_rms_px"] = _rms(base["static"][k] - real_xy[i])
             row["ridge_rms_px"] = _rms(base["ridge"][k] - real_xy[i])
-            row["twin_truth_rms_px"] = _rms(truth_uv[i] - real_xy[i])
+            row["twin_truth_rms_px"] = _rms(twin.truth_uv[i] - real_xy[i])
             held_err["twin"].append(err)
-            held_err["twin_truth"].append(truth_uv[i] - real_xy[i])
+            held_err["twin_truth"].append(twin.truth_uv[i] - real_xy[i])
             held_err["static"].append(base["static"][k] - real_xy[i])
             held_err["ridge"].append(base["ridge"][k] - real_xy[i])
             disp_err_held.append(derr)
         per_frame.append(row)
-        ov = _overlay(ctx.greys[i], twin_imgs[i], real_xy[i], twin_xy[i],
+        ov = _overlay(ctx.greys[i], twin.images[i], real_xy[i], twin_xy[i],
                       f"{f.path.name} [{row['split']}] d={f.pose.depth_mm:.2f} mm tilt=({f.pose.tilt_x_deg:.1f}, "
                       f"{f.pose.tilt_y_deg:.1f}) deg  RMS {row['position_rms_px'] or float('nan'):.2f} px")
         imwrite_atomic(out / f"overlay_{f.path.stem}.png", ov)
-    # held-out figures: RMS over all held-out marker observations compared by each method
+    return _Comparison(per_frame, held_err, disp_err_held)
+
+
+def _frame_row(ctx: FitContext, twin: _TwinFrames, i: int, twin_xy: np.ndarray, err: np.ndarray, derr: np.ndarray,
+               real_disp: np.ndarray, held: bool) -> dict:
+    """One frame's pose, image statistics (real and twin), identified markers and errors. Arrays (M, 2), px:
+    ``twin_xy`` the twin's identified markers, ``err`` twin − real, ``derr`` the displacement error (each from its
+    reference), ``real_disp`` the real markers' displacement from the real reference."""
+    f, real_xy = ctx.frames[i], ctx.real_xy[i]
+    ok = np.all(np.isfinite(err), axis=1)
+    e = np.linalg.norm(err[ok], axis=1)
+    return {"frame": f.path.name, "split": "held_out" if held else "train",
+            "depth_mm": f.pose.depth_mm, "tilt_x_deg": f.pose.tilt_x_deg, "tilt_y_deg": f.pose.tilt_y_deg,
+            "real": frame_stats(ctx.greys[i], ctx.blobs[i]), "twin": frame_stats(twin.images[i], twin.blobs[i]),
+            "identified_real": int(np.isfinite(real_xy[:, 0]).sum()),
+            "identified_twin": int(np.isfinite(twin_xy[:, 0]).sum()), "compared": int(ok.sum()),
+            "position_rms_px": _rms(err), "position_median_px": float(np.median(e)) if len(e) else None,
+            "position_p95_px": float(np.percentile(e, 95)) if len(e) else None,
+            "displacement_rms_px": _rms(derr),
+            "real_displacement_rms_px": _rms(real_disp)}
+
+
+def _held_out_rms(cmp: _Comparison) -> tuple[dict, dict]:
+    """RMS over all held-out marker observations per method, and over the markers every method identified."""
+    held_err = cmp.held_err
     held = {k: _rms(np.concatenate(v)) for k, v in held_err.items()}
-    # the same markers for all methods: those the twin identified too
     common = [np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1) & np.all(np.isfinite(c), axis=1)
               for a, b, c in zip(held_err["twin"], held_err["static"], held_err["ridge"])]
     held_common = {k: _rms(np.concatenate([e[m] for e, m in zip(v, common)])) for k, v in held_err.items()}
-    held["displacement_twin"] = _rms(np.concatenate(disp_err_held))
+    held["displacement_twin"] = _rms(np.concatenate(cmp.disp_err_held))
+    return held, held_common
 
-    def med(split, who, key):
-        vals = [r[who][key] for r in per_frame if r[who][key] is not None and (split is None or r["split"] == split)]
+
+def _image_stats(per_frame: list[dict]) -> dict:
+    """Median over frames of each image statistic, real and twin, and their relative difference."""
+    def med(who, key):
+        vals = [r[who][key] for r in per_frame if r[who][key] is not None]
         return float(np.median(vals)) if vals else None
 
-    stats = {k: {"real": med(None, "real", k), "twin": med(None, "twin", k)} for k in STAT_KEYS}
+    stats = {k: {"real": med("real", k), "twin": med("twin", k)} for k in STAT_KEYS}
     for k, v in stats.items():
         v["relative_difference"] = (abs(v["twin"] - v["real"]) / abs(v["real"])
                                     if v["real"] not in (None, 0) and v["twin"] is not None else None)
-    n_params = {"twin": 1 + len(CAM_KEYS) + 4, "static": 2 * design.marker_count,
-                "ridge": 2 * design.marker_count * ridge_features(poses[:1]).shape[1]}
-    goals = {
+    return stats
+
+
+def _goals(held_common: dict, stats: dict) -> dict:
+    """The twin within half the static baseline and 1.5× the ridge; image statistics within 10 %."""
+    return {
         "twin_le_half_static": held_common["twin"] is not None and held_common["twin"] <= 0.5 * held_common["static"],
         "twin_within_1p5_ridge": held_common["twin"] is not None and held_common["twin"] <= 1.5 * held_common["ridge"],
         "image_stats_within_10pct": all((stats[k]["relative_difference"] or 1.0) <= 0.10
                                         for k in ("count", "radius_px", "contrast", "spacing_px")),
     }
-    summary = {"design": design.name, "frames": n, "train": len(ctx.train), "held_out": len(ctx.held),
-               "held_out_frames": [ctx.frames[i].path.name for i in ctx.held],
-               "reference": ctx.frames[ctx.ref].path.name,
-               "held_out_rms_px": held, "held_out_rms_px_common_markers": held_common,
-               "fitted_position_parameters": n_params, "image_stats_median": stats, "goals": goals,
-               "per_frame": per_frame, "seconds": time.time() - t0}
-    atomic_write_json(out / "summary.json", summary, indent=1)
-    _plot(out, held_err, per_frame)
-    _report(out, summary)
-    log(f"validate: {n} frames ({len(ctx.held)} held out), reference {summary['reference']}")
+
+
+def _log_summary(log, summary: dict, out: Path) -> None:
+    """The held-out errors, image statistics and goals on the console."""
+    held, held_common, stats = summary["held_out_rms_px"], summary["held_out_rms_px_common_markers"], \
+        summary["image_stats_median"]
+    log(f"validate: {summary['frames']} frames ({summary['held_out']} held out), reference {summary['reference']}")
     log("held-out marker RMS (px, markers identified by all methods): " + ", ".join(
         f"{k} {v:.2f}" for k, v in held_common.items() if v is not None))
     log(f"held-out displacement RMS error of the twin: {held['displacement_twin']:.2f} px")
     for k in STAT_KEYS:
         s = stats[k]
         log(f"  {k:11s} real {s['real']:.3g}  twin {s['twin']:.3g}  ({100 * (s['relative_difference'] or 0):.1f} %)")
-    log("goals: " + ", ".join(f"{k} {'MET' if v else 'not met'}" for k, v in goals.items()))
-    log(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'summary.json'} and {n} overlays")
-    return summary
+    log("goals: " + ", ".join(f"{k} {'MET' if v else 'not met'}" for k, v in summary["goals"].items()))
+    log(f"wrote {out / 'report.md'}, {out / 'report.html'}, {out / 'summary.json'} and {summary['frames']} overlays")
 
 
 def _plot(out: Path, held_err, per_frame) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -31,6 +32,14 @@ def _apex_beyond_tip_mm(truth, depth_mm: float) -> float:
     return float(-depth_mm - v[np.argmin(np.hypot(v[:, 0], v[:, 1])), 2])
 
 
+N_PRESS = 3                 # default-path presses timed (the first compiles the model, the others copy it)
+N_FRAMES = 20               # stereo frames timed after one warm-up
+DEPTH_MM = 5.0
+GOALS = {"press_s": 3.0, "sharp_press_s": 6.0, "gap_max_mm": 0.1, "frame_ms": 50.0,
+         "axis_mesh_press_s": 3.0, "axis_mesh_sharp_press_s": 6.0,
+         "penetration_max_mm": 0.05}
+
+
 def run_twin_bench(out_dir, quick: bool = False) -> dict:
     """Twin speed and fidelity: s per 5 mm press, ms per stereo frame, skin–indenter gap (σ²=10 Gaussian).
 
@@ -40,29 +49,60 @@ def run_twin_bench(out_dir, quick: bool = False) -> dict:
     difference between the two equilibria recorded. Writes ``out_dir/twin.json`` and returns the same
     dict. Goals on the 2-core reference machine: press ≤ 3 s with gap ≤ 0.1 mm; ≤ 50 ms per stereo frame.
     """
-    from tqdm import tqdm
-
     from pipeline.design import load_design
+    from pipeline.io.atomic import atomic_write_json
     from twin.indenters import make_indenter
-    from twin.physics import SkinSim
-    from twin import robot
 
     design = load_design(DEFAULT_DESIGN)
     ind = make_indenter("gaussian", h_mm=5.0, sigma2_mm2=10.0)
-    n_press = 3
-    press_s, build_s, settle_steps, converged, direct, cached = [], [], [], [], [], []
-    gaps = None
-    # the default path (robot.execute: direct solve at the captured pose, checked, followed path as the
-    # fallback), n_press times; the model is compiled for the first press and copied from the cache after
-    from benchmarks.latency import reference_workload_ms
+    sharp_ind = make_indenter("gaussian", h_mm=5.0, sigma2_mm2=5.0 / 3.0)
+    default = _default_presses(design, ind)
+    followed = _followed_press(design, ind)
+    result = {**_press_fields(design, default, followed),
+              **_contact_mesh_fields(design, ind, sharp_ind),
+              "goals": dict(GOALS)}
+    frames = _frame_timing(design, default.truth)
+    result.update(frames.fields)
+    ref_ms = default.reference_ms + frames.reference_ms
+    result["reference_ms_median"] = float(np.median(ref_ms))
+    result["reference_ms_all"] = [float(v) for v in ref_ms]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "twin.json", result)
+    return result
 
-    ref_ms = []     # the reference job timed between the presses and between the frames (the machine's speed then)
-    for _ in tqdm(range(n_press), desc="bench twin: presses"):
+
+class _DefaultPresses(NamedTuple):
+    """The default-path presses: per press its timings and settle stats; the last press's sim state and truth."""
+
+    press_s: list
+    build_s: list
+    settle_steps: list
+    converged: list
+    direct: list
+    cached: list
+    gaps: np.ndarray        # the last press's skin–indenter gap (mm)
+    warnings: list          # the last press's MuJoCo warnings
+    truth: object           # the last press's truth
+    reference_ms: list      # the reference job timed before each press (the machine's speed then)
+
+
+def _default_presses(design, ind) -> _DefaultPresses:
+    """Press ``ind`` 5 mm into ``design`` :data:`N_PRESS` times on the default path (robot.execute: direct solve at
+    the captured pose, checked, followed path as the fallback), timing model set-up and press."""
+    from tqdm import tqdm
+
+    from benchmarks.latency import reference_workload_ms
+    from twin import robot
+    from twin.physics import SkinSim
+
+    press_s, build_s, settle_steps, converged, direct, cached, ref_ms = [], [], [], [], [], [], []
+    for _ in tqdm(range(N_PRESS), desc="bench twin: presses"):
         ref_ms.append(reference_workload_ms(repeats=5))
         t0 = time.perf_counter()
         sim = SkinSim(design, ind)
         t1 = time.perf_counter()
-        (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0))
+        (_, stats, truth), = robot.execute(sim, robot.press_motion(DEPTH_MM))
         press_s.append(time.perf_counter() - t0)
         build_s.append(t1 - t0)
         settle_steps.append(stats.steps)
@@ -71,46 +111,74 @@ def run_twin_bench(out_dir, quick: bool = False) -> dict:
         cached.append(sim.model_from_cache)
         gaps = sim.gap_mm()
         warn = sim.warnings()
-        markers = truth.marker_xyz_mm
-    # one press along the followed path (1 mm/s profile, contact increments, lag limit) for comparison
+    return _DefaultPresses(press_s, build_s, settle_steps, converged, direct, cached, gaps, warn, truth, ref_ms)
+
+
+class _FollowedPress(NamedTuple):
+    """One press along the followed path (1 mm/s profile, contact increments, lag limit)."""
+
+    seconds: float
+    truth: object
+    gaps: np.ndarray
+    steps: int
+    mesh_dofs: int
+
+
+def _followed_press(design, ind) -> _FollowedPress:
+    """The same press along the followed path, for comparison with the direct solve."""
+    from twin import robot
+    from twin.physics import SkinSim
+
     t0 = time.perf_counter()
     sim = SkinSim(design, ind)
-    (_, f_stats, f_truth), = robot.execute(sim, robot.press_motion(5.0), direct=False)
-    followed_s = time.perf_counter() - t0
-    f_gaps = sim.gap_mm()
+    (_, _, truth), = robot.execute(sim, robot.press_motion(DEPTH_MM), direct=False)
+    seconds = time.perf_counter() - t0
+    return _FollowedPress(seconds, truth, sim.gap_mm(), int(sim.steps_taken), int(sim.model.nv))
+
+
+def _press_fields(design, default: _DefaultPresses, followed: _FollowedPress) -> dict:
+    """The σ² = 10 press's speed, settle statistics, gap, penetration and direct-vs-followed agreement."""
+    gaps, f_gaps, val = default.gaps, followed.gaps, default.truth.validity
+    return {
+        "units": {"press_s": "s", "frame_ms": "ms", "gap": "mm"},
+        "design": design.name, "indenter": {"name": "gaussian", "h_mm": 5.0, "sigma2_mm2": 10.0}, "depth_mm": DEPTH_MM,
+        "press_s_median": float(np.median(default.press_s)), "press_s_all": default.press_s,
+        "press_direct": default.direct, "model_from_cache": default.cached,
+        "model_build_s_median": float(np.median(default.build_s)), "model_build_s_all": default.build_s,
+        "settle_steps": default.settle_steps,
+        "settle_converged": default.converged, "mesh_dofs": followed.mesh_dofs,
+        "gap_max_mm": float(np.max(np.abs(gaps))) if len(gaps) else float("nan"),
+        "gap_rms_mm": float(np.sqrt(np.mean(gaps**2))) if len(gaps) else float("nan"),
+        "gap_points": int(len(gaps)), "mujoco_warnings": default.warnings,
+        "followed_press_s": followed.seconds, "followed_steps": followed.steps,
+        "followed_gap_max_mm": float(np.max(np.abs(f_gaps))) if len(f_gaps) else float("nan"),
+        "direct_vs_followed_marker_max_mm": float(np.max(np.linalg.norm(
+            default.truth.marker_xyz_mm - followed.truth.marker_xyz_mm, axis=1))),
+        "penetration_max_mm": val["penetration_max_mm"], "penetration_p99_mm": val["penetration_p99_mm"],
+        "penetration_vertex_max_mm": val["penetration_vertex_max_mm"], "contact_force_n": val["contact_force_n"],
+        "physics_valid": bool(val["valid"]), "physics_reasons": val["reasons"],
+    }
+
+
+def _contact_mesh_fields(design, ind, sharp_ind) -> dict:
+    """The sharpest Gaussian on the default mesh, σ² = 10 with face contact, and both on the axis contact mesh
+    the Gaussian experiment uses: time, penetration, validity, how far the apex stands off the tip."""
     from twin.physics import AXIS_CONTACT_MESH, MeshSpec
 
-    sharp_ind = make_indenter("gaussian", h_mm=5.0, sigma2_mm2=5.0 / 3.0)
     # the sharpest Gaussian of the paper (σ² = 5/3 mm², tip radius 0.33 mm): time and physics verdict
     sharp_s, s_stats, s_truth = _timed_press(design, sharp_ind, MeshSpec())
     # the same sigma^2 = 10 press with face contact (twin.contact): penetration vs how far the apex stands off
     fc_s, _, fc_truth = _timed_press(design, ind, MeshSpec(face_contact=True))
-    fc_apex_beyond = _apex_beyond_tip_mm(fc_truth, 5.0)
+    fc_apex_beyond = _apex_beyond_tip_mm(fc_truth, DEPTH_MM)
     # the axis contact mesh the Gaussian experiment uses (0.5 mm core + face contact), sigma^2 = 10 and 5/3
     axis = {}
     for tag, a_ind in (("s10", ind), ("s5_3", sharp_ind)):
         secs, a_stats, a_truth = _timed_press(design, a_ind, AXIS_CONTACT_MESH)
         axis[tag] = {"press_s": secs, "penetration_max_mm": a_truth.validity["penetration_max_mm"],
                      "valid": bool(a_truth.validity["valid"]), "direct": bool(a_stats.direct),
-                     "apex_beyond_tip_mm": _apex_beyond_tip_mm(a_truth, 5.0)}
-    val, s_val = truth.validity, s_truth.validity
-    result = {
-        "units": {"press_s": "s", "frame_ms": "ms", "gap": "mm"},
-        "design": design.name, "indenter": {"name": "gaussian", "h_mm": 5.0, "sigma2_mm2": 10.0}, "depth_mm": 5.0,
-        "press_s_median": float(np.median(press_s)), "press_s_all": press_s,
-        "press_direct": direct, "model_from_cache": cached,
-        "model_build_s_median": float(np.median(build_s)), "model_build_s_all": build_s,
-        "settle_steps": settle_steps,
-        "settle_converged": converged, "mesh_dofs": int(sim.model.nv),
-        "gap_max_mm": float(np.max(np.abs(gaps))) if len(gaps) else float("nan"),
-        "gap_rms_mm": float(np.sqrt(np.mean(gaps**2))) if len(gaps) else float("nan"),
-        "gap_points": int(len(gaps)), "mujoco_warnings": warn,
-        "followed_press_s": followed_s, "followed_steps": int(sim.steps_taken),
-        "followed_gap_max_mm": float(np.max(np.abs(f_gaps))) if len(f_gaps) else float("nan"),
-        "direct_vs_followed_marker_max_mm": float(np.max(np.linalg.norm(markers - f_truth.marker_xyz_mm, axis=1))),
-        "penetration_max_mm": val["penetration_max_mm"], "penetration_p99_mm": val["penetration_p99_mm"],
-        "penetration_vertex_max_mm": val["penetration_vertex_max_mm"], "contact_force_n": val["contact_force_n"],
-        "physics_valid": bool(val["valid"]), "physics_reasons": val["reasons"],
+                     "apex_beyond_tip_mm": _apex_beyond_tip_mm(a_truth, DEPTH_MM)}
+    s_val = s_truth.validity
+    return {
         "sharp_press_s": sharp_s, "sharp_press_direct": bool(s_stats.direct),
         "sharp_penetration_max_mm": s_val["penetration_max_mm"], "sharp_physics_valid": bool(s_val["valid"]),
         "face_contact_press_s": fc_s, "face_contact_penetration_max_mm": fc_truth.validity["penetration_max_mm"],
@@ -119,34 +187,32 @@ def run_twin_bench(out_dir, quick: bool = False) -> dict:
         "axis_mesh_apex_beyond_tip_mm": axis["s10"]["apex_beyond_tip_mm"],
         "axis_mesh_sharp_press_s": axis["s5_3"]["press_s"],
         "axis_mesh_sharp_penetration_max_mm": axis["s5_3"]["penetration_max_mm"], "axis_mesh": axis,
-        "goals": {"press_s": 3.0, "sharp_press_s": 6.0, "gap_max_mm": 0.1, "frame_ms": 50.0,
-                  "axis_mesh_press_s": 3.0, "axis_mesh_sharp_press_s": 6.0,
-                  "penetration_max_mm": 0.05},
     }
+
+
+class _FrameTiming(NamedTuple):
+    fields: dict            # frame_ms_median and frame_ms_n, or the reason the renderer is unavailable
+    reference_ms: list      # the reference job timed before each frame
+
+
+def _frame_timing(design, truth) -> _FrameTiming:
+    """Milliseconds per stereo frame of the pressed skin (:data:`N_FRAMES` after one warm-up)."""
+    from tqdm import tqdm
+
+    from benchmarks.latency import reference_workload_ms
+
     try:
         from twin.render import StereoRenderer
     except ImportError as exc:   # renderer not installed / no GL
-        result["frame_ms_median"] = None
-        result["render_note"] = f"renderer unavailable: {exc}"
-    else:
-        r = StereoRenderer(design, rng=np.random.default_rng(0))
-        n = 20
+        return _FrameTiming({"frame_ms_median": None, "render_note": f"renderer unavailable: {exc}"}, [])
+    r = StereoRenderer(design, rng=np.random.default_rng(0))
+    r.render_markers(truth.marker_xyz_mm, truth.marker_axis, skin_vertices_mm=truth.skin_vertices_mm,
+                     skin_faces=truth.skin_faces)   # warm-up (static meshes, shaders)
+    ms, ref_ms = [], []
+    for _ in tqdm(range(N_FRAMES), desc="bench twin: frames"):
+        ref_ms.append(reference_workload_ms())
+        t0 = time.perf_counter()
         r.render_markers(truth.marker_xyz_mm, truth.marker_axis, skin_vertices_mm=truth.skin_vertices_mm,
-                         skin_faces=truth.skin_faces)   # warm-up (static meshes, shaders)
-        ms = []
-        for _ in tqdm(range(n), desc="bench twin: frames"):
-            ref_ms.append(reference_workload_ms())
-            t0 = time.perf_counter()
-            r.render_markers(truth.marker_xyz_mm, truth.marker_axis, skin_vertices_mm=truth.skin_vertices_mm,
-                             skin_faces=truth.skin_faces)
-            ms.append((time.perf_counter() - t0) * 1e3)
-        result["frame_ms_median"] = float(np.median(ms))
-        result["frame_ms_n"] = n
-    result["reference_ms_median"] = float(np.median(ref_ms))
-    result["reference_ms_all"] = [float(v) for v in ref_ms]
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    from pipeline.io.atomic import atomic_write_json
-
-    atomic_write_json(out / "twin.json", result)
-    return result
+                         skin_faces=truth.skin_faces)
+        ms.append((time.perf_counter() - t0) * 1e3)
+    return _FrameTiming({"frame_ms_median": float(np.median(ms)), "frame_ms_n": N_FRAMES}, ref_ms)

@@ -11,6 +11,8 @@ is tested, not assumed.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from benchmarks.experiments._common import (gaussian_curvature_profile, make_indenter, radial_rms, rms, run_press_cells,
@@ -66,41 +68,79 @@ def _tag(thickness_mm: float) -> str:
 )
 def run(ctx: Context) -> Result:
     """Gaussian indenters × skin thickness: reconstruction error vs distance from the tip, with curvature."""
+    grid = _grid(ctx)
+    out = Result(designs=grid.designs, setups=[st.provenance for st in grid.setups.values()])
+    cells = _press_grid(ctx, out, grid)
+    rows = [c[0] for c in cells]
+    _tabulate(out, cells)
+    _score_against_cad(out, cells, grid)
+    _physics_health(out, rows, grid.sigma2s)
+    _findings(out, rows, grid)
+    out.notes.append("Error vs CAD over the footprint (indenter below the rest skin plane z = 0); error vs true "
+                     "skin over the whole pattern; reconstruction via pipeline.geometry.surface.height_map on a 0.5 mm grid.")
+    out.notes.append(calibration_note(grid.setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
+    out.figures.append(_plot(ctx, cells, grid))
+    return out
+
+
+class _Grid(NamedTuple):
+    """The cells of this run: skins (one design each) × σ² × yaws."""
+
+    sigma2s: list
+    yaws: list
+    designs: list
+    setups: dict      # design name -> its SensorSetup (estimated calibration: once per design)
+
+
+def _grid(ctx: Context) -> _Grid:
+    """The grid of cells from the experiment's knobs (quick: σ² 10 and 5/3, the thinnest and thickest skin, yaw 0)."""
     sigma2s = [float(s) for s in ctx.param("sigma2", SIGMA2_MM2, quick=(10.0, 5.0 / 3.0))]
     skins = [float(t) for t in ctx.param("skins", tuple(SKIN_DESIGNS), quick=(0.5, 1.5))]
     yaws = [float(y) for y in ctx.param("yaws", YAWS_DEG, quick=(0.0,))]
     designs = ctx.designs([SKIN_DESIGNS[t] for t in skins])
-    sharpest = min(sigma2s)
-    setups = {d.name: ctx.sensor_setup(d) for d in designs}   # estimated calibration: once per design
-    out = Result(designs=designs, setups=[st.provenance for st in setups.values()])
-    jobs = [(design, s2, yaw, ctx.seed, f"gaussian/{design.name}/{s2:.4f}/{yaw:g}", setups[design.name])
-            for design in designs for s2 in sigma2s for yaw in yaws]
-    cells = run_press_cells(ctx, out, press_cell, jobs, desc="gaussian", params=lambda j: (
-        {"design": j[0].name, "sigma2_mm2": j[1], "yaw_deg": j[2]}, f"{j[0].name} σ²={j[1]:.3g} yaw {j[2]:g}"))
-    rows = [c[0] for c in cells]
+    setups = {d.name: ctx.sensor_setup(d) for d in designs}
+    return _Grid(sigma2s, yaws, designs, setups)
 
+
+def _press_grid(ctx: Context, out: Result, grid: _Grid) -> list:
+    """Press, reconstruct and score every cell (:func:`press_cell`) through the executor."""
+    jobs = [(design, s2, yaw, ctx.seed, f"gaussian/{design.name}/{s2:.4f}/{yaw:g}", grid.setups[design.name])
+            for design in grid.designs for s2 in grid.sigma2s for yaw in grid.yaws]
+    return run_press_cells(ctx, out, press_cell, jobs, desc="gaussian", params=lambda j: (
+        {"design": j[0].name, "sigma2_mm2": j[1], "yaw_deg": j[2]}, f"{j[0].name} σ²={j[1]:.3g} yaw {j[2]:g}"))
+
+
+def _tabulate(out: Result, cells: list) -> None:
+    """The cells table, the lowest matched fraction and every cell's radial error profile."""
+    rows = [c[0] for c in cells]
     out.tables["cells"] = rows
     out.metric("matched_fraction_min", float(min(r["matched_fraction"] for r in rows)), "1")
     out.tables["radial_profiles"] = [
         {"design": c["design"], "sigma2_mm2": c["sigma2_mm2"], "yaw_deg": c["yaw_deg"], "r_mm": float(rc), "rms_mm": float(p)}
         for c, cs, pr, _, _ in cells for rc, p in zip(cs, pr)]
-    valid_cells = [c for c in cells if c[0]["physics_valid"]]
+
+
+def _errors(which: str, cells: list) -> np.ndarray:
+    """Every grid point's error of the given cells, concatenated (``which``: "cad" or "skin"); [nan] if none."""
+    return np.concatenate([_e(g, which) for *_, g, _ in cells]) if cells else np.full(1, float("nan"))
+
+
+def _score_against_cad(out: Result, cells: list, grid: _Grid) -> None:
+    """Errors against CAD on the physically valid cells (overall, per skin, at the sharpest tip); the pipeline
+    against the twin's own skin on all cells and on the valid ones."""
     nan = float("nan")
-
-    def cat(which, sel):
-        return np.concatenate([_e(g, which) for *_, g, _ in sel]) if sel else np.full(1, nan)
-
-    # scores against CAD: physically valid cells only; the pipeline vs the twin's own skin: all cells
-    out.metric("rms_vs_cad_mm", rms(cat("cad", valid_cells)), "mm")
-    out.metric("rms_vs_true_skin_mm", rms(cat("skin", [c for c in cells])), "mm")
-    out.metric("rms_vs_true_skin_mm_valid", rms(cat("skin", valid_cells)), "mm")
+    sharpest = min(grid.sigma2s)
+    valid_cells = [c for c in cells if c[0]["physics_valid"]]
+    out.metric("rms_vs_cad_mm", rms(_errors("cad", valid_cells)), "mm")
+    out.metric("rms_vs_true_skin_mm", rms(_errors("skin", [c for c in cells])), "mm")
+    out.metric("rms_vs_true_skin_mm_valid", rms(_errors("skin", valid_cells)), "mm")
     out.metric("error_curvature_correlation", float(np.nanmean([c["error_curvature_correlation"] for c, *_ in valid_cells]))
                if valid_cells else nan, "1")
     centre_by_skin = {}
-    for design in designs:
+    for design in grid.designs:
         t = _tag(design.skin.thickness_mm)
         mine = [c for c in valid_cells if c[0]["design"] == design.name]
-        out.metric(f"rms_vs_cad_mm_skin{t}", rms(cat("cad", mine)), "mm")
+        out.metric(f"rms_vs_cad_mm_skin{t}", rms(_errors("cad", mine)), "mm")
         sharp = [c[0] for c in mine if c[0]["sigma2_mm2"] == sharpest]
         centre = float(np.nanmean([c["centre_error_mm"] for c in sharp])) if sharp else nan
         centre_by_skin[design.skin.thickness_mm] = centre
@@ -110,6 +150,10 @@ def run(ctx: Context) -> Result:
     out.metric("centre_error_mm_sharpest", float(np.nanmax(list(centre_by_skin.values())))
                if np.any(np.isfinite(list(centre_by_skin.values()))) else nan, "mm")
 
+
+def _physics_health(out: Result, rows: list[dict], sigma2s: list[float]) -> None:
+    """Valid and invalid cells, the skin's deepest penetration of the indenter (overall and per σ²), and a note
+    naming the invalid cells."""
     invalid = [c for c in rows if not c["physics_valid"]]
     out.metric("invalid_cells", len(invalid), "1")
     out.metric("valid_cells", len(rows) - len(invalid), "1")
@@ -122,6 +166,11 @@ def run(ctx: Context) -> Result:
                          "score against CAD and of the findings: " + "; ".join(
                              f"{c['design']} σ²={c['sigma2_mm2']:.3g} yaw {c['yaw_deg']:g} "
                              f"({'; '.join(c['physics_reasons'])})" for c in invalid) + ".")
+
+
+def _findings(out: Result, rows: list[dict], grid: _Grid) -> None:
+    """The paper's findings, decided by this run: thicker skin errs more at a sharp tip; error follows curvature."""
+    sigma2s, designs = grid.sigma2s, grid.designs
     # the finding is decided at the sharpest sigma^2 whose cells are physically valid for every skin
     valid_s2 = [s2 for s2 in sorted(sigma2s) if all(c["physics_valid"] for c in rows if c["sigma2_mm2"] == s2)]
     if len(designs) >= 2 and valid_s2:
@@ -147,10 +196,12 @@ def run(ctx: Context) -> Result:
     out.findings.append(Finding("the radial error profile follows the Gaussian's curvature",
                                 f"mean Pearson r between radial RMS error and curvature: {corr:.2f}",
                                 None if not np.isfinite(corr) else bool(corr > 0.5)))
-    out.notes.append("Error vs CAD over the footprint (indenter below the rest skin plane z = 0); error vs true "
-                     "skin over the whole pattern; reconstruction via pipeline.geometry.surface.height_map on a 0.5 mm grid.")
-    out.notes.append(calibration_note(setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
 
+
+def _plot(ctx: Context, cells: list, grid: _Grid):
+    """Per σ²: the y = 0 profile (CAD, twin skin, reconstruction) of the first skin; radial RMS error vs CAD
+    by skin with the Gaussian's curvature."""
+    sigma2s, designs = grid.sigma2s, grid.designs
     with paper_style() as plt:
         fig, axes = plt.subplots(2, len(sigma2s), figsize=(PAGE_IN, 3.6), squeeze=False)
         for j, s2 in enumerate(sigma2s):
@@ -183,8 +234,7 @@ def run(ctx: Context) -> Result:
                 bot.set_ylabel("RMS error vs CAD (mm)")
                 top.legend(fontsize=5)
                 bot.legend(fontsize=5)
-        out.figures.append(save_figure(fig, ctx.figure_path("gaussian")))
-    return out
+        return save_figure(fig, ctx.figure_path("gaussian"))
 
 
 def _e(g: dict, which: str) -> np.ndarray:

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -132,60 +134,130 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
 )
 def run(ctx: Context) -> Result:
     """Sphere pressed into the skin module: force-depth vs the bonded-layer Hertz solution, symmetry, convergence."""
-    from twin.physics import MeshSpec
-
     design = ctx.design("hexagon127")
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(1.0, 3.0))]
     resolutions = ctx.param("resolutions", RESOLUTIONS, quick=RESOLUTIONS[1:])   # quick: production vs finest
     conv_depth = float(ctx.param("convergence_depth", 2.0))
     out = Result(designs=[design])
-    g = design.gel
-    h = design.skin.thickness_mm + design.optics.gel_thickness_mm
-    rows, times, frames = [], [], []
+    layer = _Layer.of(design)
+    cases = _cases(design)
+    bar = ctx.bar(total=len(cases) + len(resolutions), desc="physics")
+    fd = _force_depth(cases, depths, layer, bar)
+    sym = _report_force_depth(out, design, fd)
+    conv = _convergence(design, resolutions, conv_depth, bar)
+    bar.close()
+    prod = _report_convergence(out, fd, conv)
+    _findings(out, layer, fd.rows, conv, prod, sym)
+    _notes(out, layer)
+    out.figures.append(_plot(ctx, cases, fd.rows, conv, layer, depths))
+    return out
+
+
+class _Layer(NamedTuple):
+    """The uniform-gel layer the theory describes: the gel's material and the layer thickness h = T + G."""
+
+    E_mpa: float
+    nu: float
+    h_mm: float
+
+    @classmethod
+    def of(cls, design) -> "_Layer":
+        g = design.gel
+        return cls(g.youngs_modulus_mpa, g.poisson_ratio, design.skin.thickness_mm + design.optics.gel_thickness_mm)
+
+
+class _Case(NamedTuple):
+    """One pressed set-up: its tag, the design pressed, its ν (None: the design's own layers) and mesh."""
+
+    tag: str
+    design: object
+    nu: float | None
+    mesh: object
+
+
+def _cases(design) -> list[_Case]:
+    """The set-ups pressed over the depth series: the uniform gel at the gel's ν, 0.45 and the reference ν
+    (element-wise, mirrored split, nodal volumetric stiffness) and the design itself."""
+    from twin.physics import MeshSpec
+
+    nu_gel = design.gel.poisson_ratio
     sym = MeshSpec(mirrored_split=True)
     nodal = MeshSpec(volumetric="nodal")
-    cases = [("uniform", _uniform(design, g.poisson_ratio), g.poisson_ratio, MeshSpec()),
-             ("uniform045", _uniform(design, 0.45), 0.45, MeshSpec()),
-             ("uniform_mirrored", _uniform(design, g.poisson_ratio), g.poisson_ratio, sym),
-             ("uniform03", _uniform(design, NU_REFERENCE), NU_REFERENCE, MeshSpec()),
-             ("uniform_nodal", _uniform(design, g.poisson_ratio), g.poisson_ratio, nodal),
-             ("uniform045_nodal", _uniform(design, 0.45), 0.45, nodal),
-             ("design", design, None, MeshSpec()), ("design_mirrored", design, None, sym),
-             ("design_nodal", design, None, nodal)]
-    bar = ctx.bar(total=len(cases) + len(resolutions), desc="physics")
-    series = {}
+    return [_Case("uniform", _uniform(design, nu_gel), nu_gel, MeshSpec()),
+            _Case("uniform045", _uniform(design, 0.45), 0.45, MeshSpec()),
+            _Case("uniform_mirrored", _uniform(design, nu_gel), nu_gel, sym),
+            _Case("uniform03", _uniform(design, NU_REFERENCE), NU_REFERENCE, MeshSpec()),
+            _Case("uniform_nodal", _uniform(design, nu_gel), nu_gel, nodal),
+            _Case("uniform045_nodal", _uniform(design, 0.45), 0.45, nodal),
+            _Case("design", design, None, MeshSpec()), _Case("design_mirrored", design, None, sym),
+            _Case("design_nodal", design, None, nodal)]
+
+
+@dataclass
+class _ForceDepth:
+    """The depth series of every case against the layer solution."""
+
+    rows: list = field(default_factory=list)      # the "force_depth" table, one row per case and depth
+    times: list = field(default_factory=list)     # seconds per press of the twin's own set-ups
+    frames: list = field(default_factory=list)    # each pressed frame's validity
+    series: dict = field(default_factory=dict)    # tag -> _press_series results (the truths)
+
+
+def _force_depth(cases: list[_Case], depths: list[float], layer: _Layer, bar) -> _ForceDepth:
+    """Press every case through the depth series; tabulate force, contact radius and health beside theory."""
+    fd = _ForceDepth()
     for tag, d, nu, mesh in cases:
         res, secs, _ = _press_series(d, depths, mesh)
         if not tag.endswith("nodal") and tag != "uniform03":
-            times.append(secs / len(depths))   # the twin's own set-ups
-        nu_t = g.poisson_ratio if nu is None else nu
-        theory, chi = dimitriadis_force_n(g.youngs_modulus_mpa, nu_t, RADIUS_MM, h, [r[0] for r in res])
+            fd.times.append(secs / len(depths))   # the twin's own set-ups
+        nu_t = layer.nu if nu is None else nu
+        theory, chi = dimitriadis_force_n(layer.E_mpa, nu_t, RADIUS_MM, layer.h_mm, [r[0] for r in res])
         for (dep, f, tr, st, spread), ft, x in zip(res, theory, chi):
             v = tr.validity
-            rows.append({"case": tag, "nu": nu_t, "depth_mm": dep, "force_n": f, "theory_n": float(ft),
-                         "ratio": f / float(ft), "chi": float(x), "contact_radius_mm": _contact_radius_mm(tr, dep),
-                         "hertz_radius_mm": math.sqrt(RADIUS_MM * dep), "penetration_max_mm": v["penetration_max_mm"],
-                         "valid": bool(v["valid"]), "reasons": list(v["reasons"]), "converged": bool(st.converged),
-                         "settle_steps": int(st.steps), "direct": bool(st.direct), "force_spread_rel": spread,
-                         "press_s": secs / len(depths)})
-            frames.append(v)
-        series[tag] = res
+            fd.rows.append({"case": tag, "nu": nu_t, "depth_mm": dep, "force_n": f, "theory_n": float(ft),
+                            "ratio": f / float(ft), "chi": float(x), "contact_radius_mm": _contact_radius_mm(tr, dep),
+                            "hertz_radius_mm": math.sqrt(RADIUS_MM * dep),
+                            "penetration_max_mm": v["penetration_max_mm"],
+                            "valid": bool(v["valid"]), "reasons": list(v["reasons"]), "converged": bool(st.converged),
+                            "settle_steps": int(st.steps), "direct": bool(st.direct), "force_spread_rel": spread,
+                            "press_s": secs / len(depths)})
+            fd.frames.append(v)
+        fd.series[tag] = res
         bar.update()
+    return fd
+
+
+class _Symmetry(NamedTuple):
+    """Centre marker's sideways motion and mirrored markers' largest disagreement (mm) at the deepest press."""
+
+    centre: float
+    mirror: float
+    centre_mirrored: float
+    mirror_mirrored: float
+
+
+def _report_force_depth(out: Result, design, fd: _ForceDepth) -> _Symmetry:
+    """Force ratios, contact radii and symmetry of the depth series as metrics; returns the symmetry."""
+    rows = fd.rows
 
     def med(tag, key):
         return float(np.median([r[key] for r in rows if r["case"] == tag]))
 
+    def contact_ratio(tag):
+        cr = [r["contact_radius_mm"] / r["hertz_radius_mm"] for r in rows
+              if r["case"] == tag and r["contact_radius_mm"] > 0]
+        return float(np.median(cr)) if cr else float("nan")
+
     out.metric("force_ratio_uniform_median", med("uniform", "ratio"), "1")
     out.metric("force_ratio_uniform_max", float(max(r["ratio"] for r in rows if r["case"] == "uniform")), "1")
     out.metric("force_ratio_uniform045_median", med("uniform045", "ratio"), "1")
-    cr = [r["contact_radius_mm"] / r["hertz_radius_mm"] for r in rows if r["case"] == "uniform" and r["contact_radius_mm"] > 0]
-    out.metric("contact_radius_ratio_uniform_median", float(np.median(cr)) if cr else float("nan"), "1")
+    out.metric("contact_radius_ratio_uniform_median", contact_ratio("uniform"), "1")
     design_rows = [r for r in rows if r["case"] == "design"]   # the twin's production mesh
     out.metric("design_force_3mm_n", float(design_rows[-1]["force_n"]), "N")
-    centre, mirror = _mirror_errors(design, series["design"][-1][2])
+    centre, mirror = _mirror_errors(design, fd.series["design"][-1][2])
     out.metric("centre_marker_lateral_mm", centre, "mm")
     out.metric("mirror_disagreement_max_mm", mirror, "mm")
-    centre_m, mirror_m = _mirror_errors(design, series["design_mirrored"][-1][2])
+    centre_m, mirror_m = _mirror_errors(design, fd.series["design_mirrored"][-1][2])
     out.metric("centre_marker_lateral_mm_mirrored", centre_m, "mm")
     out.metric("mirror_disagreement_max_mm_mirrored", mirror_m, "mm")
     out.metric("force_ratio_uniform_median_mirrored", med("uniform_mirrored", "ratio"), "1")
@@ -194,19 +266,22 @@ def run(ctx: Context) -> Result:
     out.metric("force_ratio_uniform_nodal_median", med("uniform_nodal", "ratio"), "1")
     out.metric("force_ratio_uniform_nodal_max", float(max(r["ratio"] for r in rows if r["case"] == "uniform_nodal")), "1")
     out.metric("force_ratio_uniform045_nodal_median", med("uniform045_nodal", "ratio"), "1")
-    crn = [r["contact_radius_mm"] / r["hertz_radius_mm"] for r in rows
-           if r["case"] == "uniform_nodal" and r["contact_radius_mm"] > 0]
-    out.metric("contact_radius_ratio_uniform_nodal_median", float(np.median(crn)) if crn else float("nan"), "1")
+    out.metric("contact_radius_ratio_uniform_nodal_median", contact_ratio("uniform_nodal"), "1")
     out.metric("design_force_3mm_n_nodal", float([r for r in rows if r["case"] == "design_nodal"][-1]["force_n"]), "N")
-    centre_n, mirror_n = _mirror_errors(design, series["design_nodal"][-1][2])
+    centre_n, mirror_n = _mirror_errors(design, fd.series["design_nodal"][-1][2])
     out.metric("centre_marker_lateral_mm_nodal", centre_n, "mm")
     out.metric("mirror_disagreement_max_mm_nodal", mirror_n, "mm")
     nod = [r for r in rows if r["case"].endswith("nodal")]
     out.metric("press_s_nodal_median", float(np.median([r["press_s"] for r in nod])), "s")
     out.metric("settle_steps_nodal_max", float(max(r["settle_steps"] for r in nod)), "1")
     out.metric("force_spread_rel_max", float(max(r["force_spread_rel"] for r in rows)), "1")
+    return _Symmetry(centre, mirror, centre_m, mirror_m)
 
-    # mesh convergence (the design, one depth)
+
+def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
+    """The design pressed to ``conv_depth`` on each mesh resolution, compared with the finest (last)."""
+    from twin.physics import MeshSpec
+
     conv = []
     for fine, levels in resolutions:
         res, secs, sim = _press_series(design, [conv_depth], MeshSpec(fine_mm=fine, gel_levels_mm=tuple(levels)))
@@ -214,48 +289,58 @@ def run(ctx: Context) -> Result:
         dz = tr.marker_xyz_mm[:, 2] - design.rest_markers_mm()[:, 2]
         conv.append({"fine_mm": fine, "gel_levels_mm": list(levels), "dofs": int(sim.model.nv), "force_n": f,
                      "peak_marker_dz_mm": float(-dz.min()), "penetration_max_mm": tr.validity["penetration_max_mm"],
-                     "seconds": secs, "markers": tr.marker_xyz_mm})
-        frames.append(tr.validity)
+                     "seconds": secs, "markers": tr.marker_xyz_mm, "validity": tr.validity})
         bar.update()
-    bar.close()
     finest = conv[-1]
     for c in conv:
         c["marker_diff_vs_finest_mm"] = float(np.max(np.linalg.norm(c["markers"] - finest["markers"], axis=1)))
         c["force_rel_vs_finest"] = abs(c["force_n"] - finest["force_n"]) / finest["force_n"]
+    return conv
+
+
+def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict]) -> dict:
+    """Convergence and frame-health metrics and both tables; returns the production mesh's convergence row."""
+    frames = fd.frames + [c["validity"] for c in conv]
     prod = next((c for c in conv if c["fine_mm"] == PRODUCTION_FINE_MM), conv[0])
     out.metric("convergence_marker_max_mm", prod["marker_diff_vs_finest_mm"], "mm")
     out.metric("convergence_force_rel", prod["force_rel_vs_finest"], "1")
     out.metric("penetration_max_mm", float(max(v["penetration_max_mm"] for v in frames)), "mm")
     out.metric("invalid_frames", float(sum(not v["valid"] for v in frames)), "1")
-    out.metric("press_s_median", float(np.median(times)), "s")
-    out.tables["force_depth"] = rows
-    out.tables["convergence"] = [{k: v for k, v in c.items() if k != "markers"} for c in conv]
+    out.metric("press_s_median", float(np.median(fd.times)), "s")
+    out.tables["force_depth"] = fd.rows
+    out.tables["convergence"] = [{k: v for k, v in c.items() if k not in ("markers", "validity")} for c in conv]
+    return prod
 
-    ratio = out.metrics["force_ratio_uniform_median"][0]
+
+def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], prod: dict, sym: _Symmetry) -> None:
+    """The layer solution, symmetry and mesh-convergence claims, decided by this run's metrics."""
+    m = {k: v[0] for k, v in out.metrics.items()}
+    ratio = m["force_ratio_uniform_median"]
     out.findings.append(Finding(
-        f"uniform gel (ν = {g.poisson_ratio:g}): force within {FORCE_TOL:.0%} of the bonded-layer Hertz solution "
+        f"uniform gel (ν = {layer.nu:g}): force within {FORCE_TOL:.0%} of the bonded-layer Hertz solution "
         "(Dimitriadis et al. 2002)",
         f"FE / theory median {ratio:.2f} (0.25-3 mm: " + ", ".join(f"{r['ratio']:.2f}" for r in rows if r["case"] == "uniform")
-        + f"); at ν = 0.45 {out.metrics['force_ratio_uniform045_median'][0]:.2f}; with the mirrored split "
-        + f"{out.metrics['force_ratio_uniform_median_mirrored'][0]:.2f}",
+        + f"); at ν = 0.45 {m['force_ratio_uniform045_median']:.2f}; with the mirrored split "
+        + f"{m['force_ratio_uniform_median_mirrored']:.2f}",
         bool(abs(ratio - 1) <= FORCE_TOL)))
-    rn = out.metrics["force_ratio_uniform_nodal_median"][0]
-    rn_max = out.metrics["force_ratio_uniform_nodal_max"][0]
+    rn = m["force_ratio_uniform_nodal_median"]
+    rn_max = m["force_ratio_uniform_nodal_max"]
     out.findings.append(Finding(
-        f"uniform gel (ν = {g.poisson_ratio:g}) with nodal volumetric stiffness: force within {FORCE_TOL:.0%} of the "
+        f"uniform gel (ν = {layer.nu:g}) with nodal volumetric stiffness: force within {FORCE_TOL:.0%} of the "
         "bonded-layer Hertz solution at every depth",
         f"FE / theory median {rn:.2f}, max {rn_max:.2f} (" + ", ".join(f"{r['ratio']:.2f}" for r in rows
                                                                       if r["case"] == "uniform_nodal")
-        + f"); at ν = 0.45 {out.metrics['force_ratio_uniform045_nodal_median'][0]:.2f}; element-wise at ν = "
-        f"{NU_REFERENCE:g} (no locking: the mesh's own error) {out.metrics['force_ratio_uniform03_median'][0]:.2f}",
+        + f"); at ν = 0.45 {m['force_ratio_uniform045_nodal_median']:.2f}; element-wise at ν = "
+        f"{NU_REFERENCE:g} (no locking: the mesh's own error) {m['force_ratio_uniform03_median']:.2f}",
         bool(rn_max <= 1 + FORCE_TOL and rn >= 1 - FORCE_TOL)))
     out.findings.append(Finding(
         f"a symmetric press gives a symmetric field (centre marker ≤ {SYMMETRY_TOL_MM} mm sideways, mirrored markers "
         f"within {SYMMETRY_TOL_MM} mm)",
-        f"centre marker {centre:.3f} mm, mirrored markers up to {mirror:.3f} mm apart (3 mm press, design, the "
-        f"twin's mesh); with the mirrored split {centre_m:.3f} / {mirror_m:.3f} mm",
-        bool(centre <= SYMMETRY_TOL_MM and mirror <= SYMMETRY_TOL_MM)))
+        f"centre marker {sym.centre:.3f} mm, mirrored markers up to {sym.mirror:.3f} mm apart (3 mm press, design, the "
+        f"twin's mesh); with the mirrored split {sym.centre_mirrored:.3f} / {sym.mirror_mirrored:.3f} mm",
+        bool(sym.centre <= SYMMETRY_TOL_MM and sym.mirror <= SYMMETRY_TOL_MM)))
     if len(conv) >= 3:
+        finest = conv[-1]
         diffs = [c["marker_diff_vs_finest_mm"] for c in conv[:-1]]
         out.findings.append(Finding(
             f"mesh convergence: differences shrink with resolution and the production mesh is within "
@@ -263,6 +348,10 @@ def run(ctx: Context) -> Result:
             ", ".join(f"{c['fine_mm']:g} mm: markers {c['marker_diff_vs_finest_mm']:.3f} mm, force "
                       f"{c['force_rel_vs_finest']:+.1%}" for c in conv[:-1]) + f" (vs {finest['fine_mm']:g} mm)",
             bool(diffs == sorted(diffs, reverse=True) and prod["marker_diff_vs_finest_mm"] <= CONVERGENCE_TOL_MM)))
+
+
+def _notes(out: Result, layer: _Layer) -> None:
+    """What the elements can and cannot do, and the set-up the theory is evaluated for."""
     out.notes.append("Linear tetrahedra (MuJoCo flex, Kuhn split of a tensor grid) lock volumetrically as ν → 0.5: "
                      "the uniform-gel force is compared at the design's ν and at 0.45, element-wise and with the "
                      "bulk stiffness on averaged nodal volumes (MeshSpec(volumetric='nodal'), twin.volumetric); "
@@ -270,10 +359,13 @@ def run(ctx: Context) -> Result:
                      "two-layer force has no closed-form reference here; its ratio to the uniform-gel solution is in "
                      "tables.force_depth. Forces are means over "
                      f"{FORCE_AVG_STEPS} steps held at the settled pose (force_spread_rel: their spread).")
-    out.notes.append(f"Sphere R = {RADIUS_MM:g} mm on the sensor axis, layer h = T + G = {h:g} mm, E_gel = "
-                     f"{g.youngs_modulus_mpa:g} MPa (design file; an estimate, see twin/materials.py). Contact radius: "
+    out.notes.append(f"Sphere R = {RADIUS_MM:g} mm on the sensor axis, layer h = T + G = {layer.h_mm:g} mm, E_gel = "
+                     f"{layer.E_mpa:g} MPa (design file; an estimate, see twin/materials.py). Contact radius: "
                      "outermost skin vertex within 0.05 mm of the sphere (resolution = the 1.5 mm mesh).")
 
+
+def _plot(ctx: Context, cases: list[_Case], rows: list[dict], conv: list[dict], layer: _Layer, depths: list[float]):
+    """Force vs depth with the layer solutions; FE / theory by case; convergence vs in-plane spacing."""
     with paper_style() as plt:
         fig, ax = plt.subplots(1, 3, figsize=(PAGE_IN, 2.4))
         dd = np.linspace(0.05, max(depths), 100)
@@ -282,7 +374,7 @@ def run(ctx: Context) -> Result:
             ax[0].plot([r["depth_mm"] for r in mine], [r["force_n"] for r in mine], "o", ms=3, color=f"C{k}",
                        label=f"FE {tag}")
             if tag in ("uniform", "uniform045", "uniform03"):
-                ax[0].plot(dd, dimitriadis_force_n(g.youngs_modulus_mpa, nu, RADIUS_MM, h, dd)[0], "-", color=f"C{k}",
+                ax[0].plot(dd, dimitriadis_force_n(layer.E_mpa, nu, RADIUS_MM, layer.h_mm, dd)[0], "-", color=f"C{k}",
                            lw=0.8, label=f"layer Hertz ν={nu:g}")
             ax[1].plot([r["depth_mm"] for r in mine], [r["ratio"] for r in mine], "o-", ms=3, color=f"C{k}", label=tag)
         ax[0].set_xlabel("depth (mm)")
@@ -299,5 +391,4 @@ def run(ctx: Context) -> Result:
         ax[2].invert_xaxis()
         ax[2].set_xlabel("in-plane spacing (mm)")
         ax[2].legend(fontsize=5)
-        out.figures.append(save_figure(fig, ctx.figure_path("physics")))
-    return out
+        return save_figure(fig, ctx.figure_path("physics"))

@@ -10,6 +10,7 @@ and beyond π/5 the skin no longer reaches the valleys — are tested from the p
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -81,20 +82,52 @@ def _penetration(gap: np.ndarray, r: np.ndarray, radius_mm: float) -> float:
 )
 def run(ctx: Context) -> Result:
     """Sine indenters × marker separation: upper-surface and lowest-point reconstruction error."""
+    grid = _grid(ctx)
+    out = Result(designs=grid.designs, setups=[st.provenance for st in grid.setups.values()])
+    cells = _press_grid(ctx, out, grid)
+    rows = [c[0] for c in cells]
+    out.tables["cells"] = rows
+    _report_identification(out, rows, grid.n_press)
+    valid_rows = _physically_valid(out, rows)
+    _score_against_cad(out, rows, valid_rows, grid)
+    _findings(out, rows, valid_rows, grid.omega_idx)
+    _notes(out, grid)
+    out.figures.append(_plot(ctx, cells, valid_rows, grid))
+    return out
+
+
+class _Grid(NamedTuple):
+    """The cells of this run: ω indices × separations (one design each) × yaws, pressed in ``n_press`` frames."""
+
+    omega_idx: list
+    yaws: list
+    n_press: int
+    designs: list
+    setups: dict      # design name -> its SensorSetup (estimated calibration: once per design)
+
+
+def _grid(ctx: Context) -> _Grid:
+    """The grid of cells from the experiment's knobs (quick: three ω, the sparsest and densest pattern, yaw 0)."""
     omega_idx = [int(k) for k in ctx.param("omega_index", range(len(OMEGAS)), quick=(0, 2, 4))]
     seps = [float(s) for s in ctx.param("separations", tuple(SEP_DESIGNS), quick=(3.54, 1.80))]
     yaws = [float(y) for y in ctx.param("yaws", YAWS_DEG, quick=(0.0,))]
     n_press = int(ctx.param("press_frames", PRESS_FRAMES))
     designs = ctx.designs([SEP_DESIGNS[s] for s in seps])
-    setups = {d.name: ctx.sensor_setup(d) for d in designs}   # estimated calibration: once per design
-    out = Result(designs=designs, setups=[st.provenance for st in setups.values()])
-    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", setups[design.name], n_press)
-            for design in designs for k in omega_idx for yaw in yaws]
-    cells = run_press_cells(ctx, out, press_cell, jobs, desc="sine", params=lambda j: (
+    setups = {d.name: ctx.sensor_setup(d) for d in designs}
+    return _Grid(omega_idx, yaws, n_press, designs, setups)
+
+
+def _press_grid(ctx: Context, out: Result, grid: _Grid) -> list:
+    """Press, reconstruct and score every cell (:func:`press_cell`) through the executor; [(row, surface grid)]."""
+    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", grid.setups[design.name], grid.n_press)
+            for design in grid.designs for k in grid.omega_idx for yaw in grid.yaws]
+    return run_press_cells(ctx, out, press_cell, jobs, desc="sine", params=lambda j: (
         {"design": j[0].name, "omega_index": j[1], "yaw_deg": j[2]},
         f"{j[0].name} ω={OMEGA_LABELS[j[1]]} yaw {j[2]:g}"))
-    rows = [c[0] for c in cells]
-    out.tables["cells"] = rows
+
+
+def _report_identification(out: Result, rows: list[dict], n_press: int) -> None:
+    """Matched fraction and wrong ids over every cell (identification is scored on all frames the twin rendered)."""
     out.metric("matched_fraction_min", float(min(r["matched_fraction"] for r in rows)), "1")
     out.metric("wrong_ids", int(sum(r["wrong_ids_sequence"] for r in rows)), "1")
     out.notes.append(
@@ -106,6 +139,9 @@ def run(ctx: Context) -> Result:
         f"≥ {IDENTIFIED_FRACTION:.0%} of the markers. Identification is scored on every cell, physically valid or "
         "not: it measures the pipeline on the frames the twin rendered.")
 
+
+def _physically_valid(out: Result, rows: list[dict]) -> list[dict]:
+    """The cells that passed the twin's physics checks (the only ones scored against CAD); counts and a note."""
     valid_rows = [r for r in rows if r["physics_valid"]]
     invalid = [r for r in rows if not r["physics_valid"]]
     out.metric("invalid_cells", len(invalid), "1")
@@ -115,33 +151,56 @@ def run(ctx: Context) -> Result:
                          "score and finding below: " + "; ".join(
                              f"{r['design']} ω={OMEGA_LABELS[r['omega_index']]} yaw {r['yaw_deg']:g} "
                              f"({'; '.join(r['physics_reasons'])})" for r in invalid) + ".")
+    return valid_rows
 
-    def mean(key, **sel):
-        # scores against CAD: physically valid cells only
-        v = np.array([r[key] for r in valid_rows if all(r[a] == b for a, b in sel.items())], dtype=float)
-        v = v[np.isfinite(v)]           # cells with no reconstruction (too few markers) are NaN
-        return float(v.mean()) if len(v) else float("nan")
 
-    out.metric("upper_rms_mm", mean("upper_rms_mm"), "mm")
-    out.metric("lowest_point_rms_mm", mean("lowest_point_rms_mm"), "mm")
+def _mean(valid_rows: list[dict], key: str, **sel) -> float:
+    """Mean of ``key`` over the valid cells matching ``sel`` (column == value); NaN cells (no reconstruction:
+    too few markers) are left out; NaN when none is left."""
+    v = np.array([r[key] for r in valid_rows if all(r[a] == b for a, b in sel.items())], dtype=float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if len(v) else float("nan")
+
+
+def _score_against_cad(out: Result, rows: list[dict], valid_rows: list[dict], grid: _Grid) -> None:
+    """Upper-surface and lowest-point errors (valid cells) overall, per separation × ω; valley gap and skin
+    penetration per ω."""
+    out.metric("upper_rms_mm", _mean(valid_rows, "upper_rms_mm"), "mm")
+    out.metric("lowest_point_rms_mm", _mean(valid_rows, "lowest_point_rms_mm"), "mm")
     out.metric("skin_penetration_max_mm", float(np.nanmax([r["skin_penetration_mm"] for r in rows])), "mm")
-    for design in designs:
+    for design in grid.designs:
         st = _stag(design.pattern.separation_mm) if design.pattern.separation_mm in SEP_DESIGNS else None
-        for k in omega_idx:
+        for k in grid.omega_idx:
             if st is not None:
-                out.metric(f"upper_rms_mm_{st}_{_otag(k)}", mean("upper_rms_mm", design=design.name, omega_index=k), "mm")
+                out.metric(f"upper_rms_mm_{st}_{_otag(k)}",
+                           _mean(valid_rows, "upper_rms_mm", design=design.name, omega_index=k), "mm")
                 out.metric(f"lowest_point_rms_mm_{st}_{_otag(k)}",
-                           mean("lowest_point_rms_mm", design=design.name, omega_index=k), "mm")
-    for k in omega_idx:
-        out.metric(f"valley_gap_mm_{_otag(k)}", mean("valley_gap_mm", omega_index=k), "mm")
+                           _mean(valid_rows, "lowest_point_rms_mm", design=design.name, omega_index=k), "mm")
+    for k in grid.omega_idx:
+        out.metric(f"valley_gap_mm_{_otag(k)}", _mean(valid_rows, "valley_gap_mm", omega_index=k), "mm")
         out.metric(f"skin_penetration_max_mm_{_otag(k)}",
                    float(np.nanmax([r["skin_penetration_mm"] for r in rows if r["omega_index"] == k])), "mm")
 
-    # --- the paper's findings, decided by this run's numbers -----------------------------------
+
+def _split_verdict(vals: dict, low: list[int], high: list[int]) -> bool | None:
+    """True/False where the finite values decide "within the bound for the ``low`` ω, beyond it for the
+    ``high`` ω"; None where a frequency without a value (nan: no valid cell, or nothing identified) could
+    still decide it either way."""
+    ok = {k: bool(np.isfinite(vals[k])) for k in vals}
+    if any(ok[k] and vals[k] > VALLEY_REACH_MM for k in low) or any(ok[k] and vals[k] <= VALLEY_REACH_MM for k in high):
+        return False
+    if low and high and all(ok[k] for k in low + high):
+        return True
+    return None
+
+
+def _findings(out: Result, rows: list[dict], valid_rows: list[dict], omega_idx: list[int]) -> None:
+    """The paper's findings, decided by this run's numbers: where density helps, and where the skin stops
+    reaching the valleys (reconstruction and the twin's own skin)."""
     sp = sorted({r["separation_mm"] for r in rows})
     if len(sp) >= 2 and len(omega_idx) >= 3:
-        benefit = {k: mean("upper_rms_mm", separation_mm=sp[-1], omega_index=k)
-                   - mean("upper_rms_mm", separation_mm=sp[0], omega_index=k) for k in omega_idx}
+        benefit = {k: _mean(valid_rows, "upper_rms_mm", separation_mm=sp[-1], omega_index=k)
+                   - _mean(valid_rows, "upper_rms_mm", separation_mm=sp[0], omega_index=k) for k in omega_idx}
         finite = {k: v for k, v in benefit.items() if np.isfinite(v)}
         best = max(finite, key=lambda k: finite[k]) if finite else None
         # a frequency without a score (no valid cell, or no marker identified) leaves the claim undecided
@@ -157,39 +216,38 @@ def run(ctx: Context) -> Result:
                                     "needs ≥ 2 separations and ≥ 3 frequencies (not in this grid)", None))
     low = [k for k in omega_idx if k <= 2]
     high = [k for k in omega_idx if k > 2]
-
-    def split_verdict(vals: dict) -> bool | None:
-        """True/False where the finite values decide the claim; None where a frequency without a value (nan: no
-        valid cell, or nothing identified) could still decide it either way."""
-        ok = {k: bool(np.isfinite(vals[k])) for k in vals}
-        if any(ok[k] and vals[k] > VALLEY_REACH_MM for k in low) or any(ok[k] and vals[k] <= VALLEY_REACH_MM for k in high):
-            return False
-        if low and high and all(ok[k] for k in low + high):
-            return True
-        return None
-
-    lowest = {k: mean("lowest_point_rms_mm", omega_index=k) for k in omega_idx}
+    lowest = {k: _mean(valid_rows, "lowest_point_rms_mm", omega_index=k) for k in omega_idx}
     out.findings.append(Finding(
         f"the lowest-point error stays within half the sinusoid's height ({VALLEY_REACH_MM:g} mm) for ω ≤ π/5 and "
         f"exceeds it for ω > π/5 (paper Fig. 11e)",
         "lowest-point RMS error (all separations): " + ", ".join(f"{OMEGA_LABELS[k]} {lowest[k]:.2f} mm" for k in omega_idx),
-        split_verdict(lowest)))
-    gaps = {k: mean("valley_gap_mm", omega_index=k) for k in omega_idx}
+        _split_verdict(lowest, low, high)))
+    gaps = {k: _mean(valid_rows, "valley_gap_mm", omega_index=k) for k in omega_idx}
     out.findings.append(Finding(
         f"the skin reaches the valleys up to ω = π/5 and no longer beyond (the twin's true skin: mean "
         f"skin-to-valley-bottom gap ≤ {VALLEY_REACH_MM:g} mm counts as reaching)",
         "twin skin gap at the valley bottoms: " + ", ".join(f"{OMEGA_LABELS[k]} {gaps[k]:.2f} mm" for k in omega_idx),
-        split_verdict(gaps)))
+        _split_verdict(gaps, low, high)))
+
+
+def _notes(out: Result, grid: _Grid) -> None:
+    """How the surfaces are split and scored, the calibration, and what skin penetration measures."""
     out.notes.append("Upper surface: the object's z > 0 half (phase < 0.5 from the crest); lowest points: the "
                      f"deepest {VALLEY_BAND:.0%} of the peak-to-peak amplitude. Error = reconstructed − CAD height.")
-    out.notes.append(calibration_note(setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
+    out.notes.append(calibration_note(grid.setups.values()) + " Refraction: the Reconstructor's default (exact) model.")
     out.notes.append("skin_penetration_max_mm: how far the twin's outer skin (vertices, face centroids, edge midpoints, "
                      "the indenter's 0.1 mm samples) lies inside the rigid sine; a cell beyond 0.05 mm is invalid.")
 
+
+def _plot(ctx: Context, cells: list, valid_rows: list[dict], grid: _Grid):
+    """Per ω: the y = 0 profile (CAD, twin skin, reconstruction) of the 2.54 mm pattern, and the upper-surface
+    and lowest-point errors by separation."""
+    sp = sorted({c[0]["separation_mm"] for c in cells})
+    omega_idx, designs = grid.omega_idx, grid.designs
     with paper_style() as plt:
         fig, axes = plt.subplots(3, len(omega_idx), figsize=(PAGE_IN, 4.8), squeeze=False)
         for j, k in enumerate(omega_idx):
-            mine = [c for c in cells if c[0]["omega_index"] == k and c[0]["yaw_deg"] == yaws[0]]
+            mine = [c for c in cells if c[0]["omega_index"] == k and c[0]["yaw_deg"] == grid.yaws[0]]
             ref_design = next((d for d in designs if d.pattern.separation_mm == 2.54), designs[0])
             ax = axes[0][j]
             for cell, g in mine:
@@ -204,7 +262,7 @@ def run(ctx: Context) -> Result:
             ax.set_xlabel("x (mm), y = 0")
             for row, key, lab in ((1, "upper_rms_mm", "upper-surface RMS (mm)"),
                                   (2, "lowest_point_rms_mm", "lowest-point RMS (mm)")):
-                vals = [mean(key, separation_mm=s, omega_index=k) for s in sp]
+                vals = [_mean(valid_rows, key, separation_mm=s, omega_index=k) for s in sp]
                 axes[row][j].bar([f"{s:g}" for s in sp], vals, color="0.45")
                 axes[row][j].set_xlabel("separation (mm)")
                 if j == 0:
@@ -212,8 +270,7 @@ def run(ctx: Context) -> Result:
             if j == 0:
                 ax.set_ylabel("z (mm)")
                 ax.legend(fontsize=5)
-        out.figures.append(save_figure(fig, ctx.figure_path("sine")))
-    return out
+        return save_figure(fig, ctx.figure_path("sine"))
 
 
 def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n_frames: int = PRESS_FRAMES) -> tuple:

@@ -15,6 +15,8 @@ half a separation).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from benchmarks.experiments._common import calibration_note, identity_correct, make_indenter, reconstruct
@@ -84,45 +86,82 @@ def _max_step_mm(truths) -> float:
 def run(ctx: Context) -> Result:
     """Letters G / e / o under slow, lateral and rapid motions: correct-identity rate of DTRC vs NN."""
     setup = ctx.sensor_setup(ctx.design())   # the twin simulates setup.twin_design; the pipeline gets setup.design
-    design, calib = setup.design, setup.calib
-    n = design.marker_count
+    design = setup.design
     out = Result(designs=[design], setups=[setup.provenance])
     letters = ctx.param("letters", "Geo")
     friction = float(ctx.param("friction", FRICTION))
-    rows, tracks = [], {}
-    invalid = 0
-    wrong_ids = {t: 0 for t in TRACKERS}
-    n_frames = 0
-    for char, motion in ctx.bar([m for m in MOTIONS if m[0] in letters], desc="tracking"):
-        seq = _simulate(setup.twin_design, char, ctx.rng(f"tracking/{motion}"), friction)
-        frames, truths = [f for f, _ in seq], [t for _, t in seq]
-        invalid += sum(1 for t in truths if t.physics_valid is False)
-        n_frames += len(frames)
-        out.metric(f"max_lateral_step_mm_{char}", _max_step_mm(truths), "mm")
+    runs = [_track_letter(setup, char, motion, ctx.rng(f"tracking/{motion}"), friction)
+            for char, motion in ctx.bar([m for m in MOTIONS if m[0] in letters], desc="tracking")]
+    _report_rates(out, runs, friction)
+    _notes(out, setup, friction)
+    _findings(out, runs, design, letters)
+    out.figures.append(_plot(ctx, runs, design, out))
+    return out
+
+
+class _Track(NamedTuple):
+    """One tracker on one letter: the pipeline's frame results and how many ids were right."""
+
+    results: list           # FrameResult per frame
+    rows: list              # the "per_frame" table rows
+    correct_rate: float     # correct ids over markers × frames
+    wrong: int              # reported ids that are wrong, over the frames
+
+
+class _LetterRun(NamedTuple):
+    """One letter's motion: the twin's truths and both trackers' results."""
+
+    char: str
+    truths: list
+    max_step_mm: float      # largest true lateral marker step between frames
+    invalid: int            # frames failing the twin's physics checks
+    tracks: dict            # tracker -> _Track
+
+
+def _track_letter(setup, char: str, motion: str, rng, friction: float) -> _LetterRun:
+    """Simulate and render the letter's paper motion, then run the frames through each tracker."""
+    seq = _simulate(setup.twin_design, char, rng, friction)
+    frames, truths = [f for f, _ in seq], [t for _, t in seq]
+    tracks = {tracker: _score_tracker(setup, char, motion, frames, truths, tracker) for tracker in TRACKERS}
+    return _LetterRun(char, truths, _max_step_mm(truths), sum(1 for t in truths if t.physics_valid is False), tracks)
+
+
+def _score_tracker(setup, char: str, motion: str, frames: list, truths: list, tracker: str) -> _Track:
+    """Reconstruct the frames in order with ``tracker`` and count each frame's correct and wrong ids."""
+    design = setup.design
+    n = design.marker_count
+    results = reconstruct(design, setup.calib, frames, tracker=tracker, **setup.reconstructor_kw())
+    rows, correct, wrong = [], [], 0
+    for k, (fr, truth) in enumerate(zip(results, truths)):
+        ok = identity_correct(fr.corrected.ids, fr.corrected.xyz_mm, truth, design.pattern.separation_mm / 2)
+        correct.append(int(ok.sum()))
+        wrong += int((~ok).sum())
+        rows.append({"letter": char, "motion": motion, "tracker": tracker, "frame": k,
+                     "reported": int(len(fr.corrected.ids)), "correct": int(ok.sum()),
+                     "wrong": int((~ok).sum()), "markers": n, "correct_rate": ok.sum() / n,
+                     "physics_valid": truth.physics_valid})
+    return _Track(results, rows, sum(correct) / (n * len(frames)), wrong)
+
+
+def _report_rates(out: Result, runs: list[_LetterRun], friction: float) -> None:
+    """Per letter and tracker: correct-id rates and largest steps; totals of frames, invalid frames, wrong ids."""
+    for lr in runs:
+        out.metric(f"max_lateral_step_mm_{lr.char}", lr.max_step_mm, "mm")
         for tracker in TRACKERS:
-            results = reconstruct(design, calib, frames, tracker=tracker, **setup.reconstructor_kw())
-            correct, wrong = [], 0
-            for k, (fr, truth) in enumerate(zip(results, truths)):
-                ok = identity_correct(fr.corrected.ids, fr.corrected.xyz_mm, truth, design.pattern.separation_mm / 2)
-                correct.append(int(ok.sum()))
-                wrong += int((~ok).sum())
-                rows.append({"letter": char, "motion": motion, "tracker": tracker, "frame": k,
-                             "reported": int(len(fr.corrected.ids)), "correct": int(ok.sum()),
-                             "wrong": int((~ok).sum()), "markers": n, "correct_rate": ok.sum() / n,
-                             "physics_valid": truth.physics_valid})
-            rate = sum(correct) / (n * len(frames))
-            out.metric(f"{tracker}_correct_rate_{char}", rate, "1")
-            wrong_ids[tracker] += wrong
-            tracks[(char, tracker)] = (results, truths)
-    out.metric("frames", n_frames, "1")
-    out.metric("invalid_frames", invalid, "1")
+            out.metric(f"{tracker}_correct_rate_{lr.char}", lr.tracks[tracker].correct_rate, "1")
+    out.metric("frames", sum(len(lr.truths) for lr in runs), "1")
+    out.metric("invalid_frames", sum(lr.invalid for lr in runs), "1")
     for t in TRACKERS:
-        out.metric(f"{t}_wrong_ids", wrong_ids[t], "1")
+        out.metric(f"{t}_wrong_ids", sum(lr.tracks[t].wrong for lr in runs), "1")
     out.metric("friction", friction, "1")
     for t in TRACKERS:
         rates = [v for k, (v, _) in out.metrics.items() if k.startswith(f"{t}_correct_rate_") and k[-1] in "Geo"]
         out.metric(f"{t}_correct_rate_min", min(rates), "1")
-    out.tables["per_frame"] = rows
+    out.tables["per_frame"] = [row for lr in runs for tracker in TRACKERS for row in lr.tracks[tracker].rows]
+
+
+def _notes(out: Result, setup, friction: float) -> None:
+    """What counts as a correct id, the calibration, and the twin's friction."""
     out.notes.append("Correct id: the nearest truth marker (3-D, corrected cloud) has the reported id and lies "
                      "within separation/2; missing markers count as not correct. "
                      "Nearest-neighbour matching can only fail where a marker moves laterally by more than about "
@@ -131,31 +170,38 @@ def run(ctx: Context) -> Result:
     out.notes.append(f"Twin contact with Coulomb friction mu = {friction:g} (stick/slip at the outer vertices, "
                      "twin.physics): lateral letter motions drag the skin under the letter. Frames failing their "
                      "physics checks are counted in invalid_frames.")
-    d, nn = out.metrics["dtrc_correct_rate_min"][0], out.metrics["nn_correct_rate_min"][0]
+
+
+def _findings(out: Result, runs: list[_LetterRun], design, letters: str) -> None:
+    """DTRC keeps identities under every motion; NN copes with 'G' but not with the rapid 'o'."""
+    m = {k: v for k, (v, _) in out.metrics.items()}
+    invalid, n_frames = sum(lr.invalid for lr in runs), sum(len(lr.truths) for lr in runs)
+    wrong_ids = {t: sum(lr.tracks[t].wrong for lr in runs) for t in TRACKERS}
+    d = m["dtrc_correct_rate_min"]
     validity = (f"; {invalid} of {n_frames} frames fail the twin's physics checks (the letters' vertical walls "
                 "pass between the skin's 1.5 mm vertices), so these rates come from flagged frames" if invalid else "")
     out.findings.append(Finding("DTRC keeps every marker's identity under all three motions",
                                 f"DTRC lowest correct-id rate {d:.3f}, {wrong_ids['dtrc']} wrong ids "
                                 f"(NN: {wrong_ids['nn']}){validity}", bool(d >= 0.99 and wrong_ids["dtrc"] == 0)))
     if "o" in letters and "G" in letters:
-        g_nn, o_nn = out.metrics["nn_correct_rate_G"][0], out.metrics["nn_correct_rate_o"][0]
-        o_d = out.metrics["dtrc_correct_rate_o"][0]
+        g_nn, o_nn, o_d = m["nn_correct_rate_G"], m["nn_correct_rate_o"], m["dtrc_correct_rate_o"]
         out.findings.append(Finding(
             "nearest-neighbour copes with the slow 'G' steps but confuses markers under the rapid 'o' motion, "
             "where DTRC does not",
             f"NN: G {g_nn:.3f}, o {o_nn:.3f}; DTRC o {o_d:.3f}; largest true lateral marker step between frames: "
-            f"G {out.metrics['max_lateral_step_mm_G'][0]:.2f} mm, o {out.metrics['max_lateral_step_mm_o'][0]:.2f} mm "
+            f"G {m['max_lateral_step_mm_G']:.2f} mm, o {m['max_lateral_step_mm_o']:.2f} mm "
             f"(separation {design.pattern.separation_mm:g} mm)", bool(g_nn >= 0.99 and o_nn < o_d)))
 
+
+def _plot(ctx: Context, runs: list[_LetterRun], design, out: Result):
+    """Each tracker's marker tracks per letter in the x-y plane; red where an identity is wrong somewhere."""
     with paper_style() as plt:
-        chars = [c for c, _ in MOTIONS if c in letters]
-        fig, axes = plt.subplots(2, len(chars), figsize=(PAGE_IN, 4.6), squeeze=False)
-        for j, char in enumerate(chars):
+        fig, axes = plt.subplots(2, len(runs), figsize=(PAGE_IN, 4.6), squeeze=False)
+        for j, lr in enumerate(runs):
             for i, tracker in enumerate(TRACKERS):
                 ax = axes[i][j]
-                results, truths = tracks[(char, tracker)]
                 paths: dict[int, list] = {}
-                for fr, truth in zip(results, truths):
+                for fr, truth in zip(lr.tracks[tracker].results, lr.truths):
                     ok = identity_correct(fr.corrected.ids, fr.corrected.xyz_mm, truth, design.pattern.separation_mm / 2)
                     for mid, p, good in zip(np.asarray(fr.corrected.ids), np.asarray(fr.corrected.xyz_mm), ok):
                         paths.setdefault(int(mid), []).append((p, good))
@@ -164,11 +210,10 @@ def run(ctx: Context) -> Result:
                     bad = not all(g for _, g in pts)
                     ax.plot(xy[:, 0], xy[:, 1], "-", color="C3" if bad else "0.3", lw=0.6)
                     ax.plot(xy[-1, 0], xy[-1, 1], "o", color="C3" if bad else "C0", ms=1.5)
-                rate = out.metrics[f"{tracker}_correct_rate_{char}"][0]
-                ax.set_title(f"'{char}' — {tracker.upper()}: {rate:.3f} correct")
+                rate = out.metrics[f"{tracker}_correct_rate_{lr.char}"][0]
+                ax.set_title(f"'{lr.char}' — {tracker.upper()}: {rate:.3f} correct")
                 ax.set_aspect("equal")
                 ax.set_xlabel("x (mm)")
                 ax.set_ylabel("y (mm)")
         fig.suptitle("marker tracks in the x-y plane (red: an identity error somewhere on the track)")
-        out.figures.append(save_figure(fig, ctx.figure_path("tracking")))
-    return out
+        return save_figure(fig, ctx.figure_path("tracking"))
