@@ -183,30 +183,36 @@ def _twin_tap(job: TapJob) -> tuple[np.ndarray, np.ndarray, dict | None]:
     pairs = simulate.press(built, indenter, depth_mm=depth, rng=rng, mesh=MeshSpec(**TAP_MESH))  # [(frame, truth)]
     rec = Reconstructor(design, setup.calib, **setup.reconstructor_kw())
     last = [rec.process(frame) for frame, _truth in pairs][-1]
-    if last.skin is None:
-        raise TerrainScanError(f"tap {job.region}#{job.index}: too few markers reconstructed")
     origin = job.origin_mm()
     origin[2] += want - depth       # capped press: the skin stopped (want - depth) mm above the tap plane
-    return np.asarray(last.skin.xyz_mm, dtype=np.float64), origin, pairs[-1][1].validity
+    if last.skin is None:
+        # a frame the pipeline cannot turn into a surface is an outcome of the scan, as on a real robot: the tap
+        # is kept with no points and the reason, and its region is merged from the taps that have points
+        return (np.empty((0, 3)), origin, pairs[-1][1].validity,
+                f"too few markers identified for a surface ({last.n_matched} of {design.marker_count})")
+    return np.asarray(last.skin.xyz_mm, dtype=np.float64), origin, pairs[-1][1].validity, None
+
+
+def _tap_outcome(job: TapJob):
+    """A tap on its back end: (points (N, 3) sensor frame, origin (3,), physics verdict or None, why there are no
+    points or None). The ideal back end has no physics to check and always gives points."""
+    if job.sensor == "ideal":
+        return _ideal_tap(job), job.origin_mm(), None, None
+    if job.sensor == "twin":
+        return _twin_tap(job)
+    raise TerrainScanError(f"unknown sensor back end {job.sensor!r} (ideal, twin)")
 
 
 def run_tap(job: TapJob) -> str:
     """Run one tap and write its file (atomically); returns the path. Top-level for spawn pickling."""
     t0 = time.perf_counter()
-    origin = job.origin_mm()
-    validity = None           # the ideal back end has no physics to check
-    if job.sensor == "ideal":
-        pts = _ideal_tap(job)
-    elif job.sensor == "twin":
-        pts, origin, validity = _twin_tap(job)
-    else:
-        raise TerrainScanError(f"unknown sensor back end {job.sensor!r} (ideal, twin)")
+    pts, origin, validity, failure = _tap_outcome(job)
     from pipeline.io.atomic import atomic_open
 
     with atomic_open(job.path, "wb") as fh:
         np.savez_compressed(fh, points_sensor_mm=pts, origin_mm=origin, region=job.region,
                             index=job.index, sensor=job.sensor, wall_s=time.perf_counter() - t0, key=job.key(),
-                            validity_json=json.dumps(validity))
+                            validity_json=json.dumps(validity), failure=failure or "")
     return str(job.path)
 
 
@@ -217,6 +223,7 @@ class Tap(NamedTuple):
     origin_mm: np.ndarray          # (3,) global position of the undeformed skin centre at the bottom of the tap
     validity: dict | None          # the physics verdict (twin.validity.FrameValidity as a dict: valid,
     #                                reasons, penetration max/p99, ...), None for the 'ideal' back end
+    failure: str | None = None     # why the tap has no points (its frame could not be reconstructed), else None
 
 
 def load_tap(path: str | Path, key: str | None = None) -> Tap:
@@ -229,6 +236,7 @@ def load_tap(path: str | Path, key: str | None = None) -> Tap:
             pts, origin = np.asarray(f["points_sensor_mm"]), np.asarray(f["origin_mm"])
             stored = str(f["key"]) if "key" in f.files else None
             validity_json = str(f["validity_json"]) if "validity_json" in f.files else None
+            failure = str(f["failure"]) if "failure" in f.files else ""
     except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise TerrainScanError(f"tap file {path}: unreadable or truncated ({type(exc).__name__})") from None
     if key is not None and stored != key:
@@ -236,11 +244,13 @@ def load_tap(path: str | Path, key: str | None = None) -> Tap:
     if (pts.ndim != 2 or pts.shape[1] != 3 or origin.shape != (3,) or pts.dtype.kind != "f"
             or not np.all(np.isfinite(pts)) or not np.all(np.isfinite(origin))):
         raise TerrainScanError(f"tap file {path}: points must be finite (N, 3) and the origin (3,)")
+    if len(pts) == 0 and not failure:
+        raise TerrainScanError(f"tap file {path}: no points and no reason")
     try:
         validity = json.loads(validity_json) if validity_json is not None else None
     except ValueError as exc:
         raise TerrainScanError(f"tap file {path}: unreadable validity record ({type(exc).__name__})") from None
-    return Tap(pts, origin, validity)
+    return Tap(pts, origin, validity, failure or None)
 
 
 def _tap_is_done(job: TapJob) -> bool:
@@ -314,12 +324,15 @@ def _region_result(out: Path, key: str, js: list[TapJob], tmap, tap_z_mm: float)
     from twin.terrain import lat_from_y_mm, lon_from_x_mm
 
     r = region(key)
-    taps, verdicts = [], []
+    taps, verdicts, failed = [], [], []
     for j in js:
         tap = load_tap(j.path, key=j.key())
-        taps.append(tap_points_to_global(tap.points_sensor_mm, tap.origin_mm))
         verdicts.append(tap.validity)
-    merged = merge_taps(taps, threshold_mm=OVERLAP_THRESHOLD_MM, eps_mm=MOLLIFIER_EPS_MM)
+        if tap.failure:
+            failed.append(f"{key}#{j.index}: {tap.failure}")
+        else:
+            taps.append(tap_points_to_global(tap.points_sensor_mm, tap.origin_mm))
+    merged = merge_taps(taps or [np.empty((0, 3))], threshold_mm=OVERLAP_THRESHOLD_MM, eps_mm=MOLLIFIER_EPS_MM)
     x0, x1, y0, y1 = r.box_mm()
     xs = np.arange(x0, x1 + 1e-9, GRID_STEP_MM)
     ys = np.arange(y0, y1 + 1e-9, GRID_STEP_MM)
@@ -331,6 +344,7 @@ def _region_result(out: Path, key: str, js: list[TapJob], tmap, tap_z_mm: float)
     land = tmap.land[li, lj]
     metrics = score_region(key, recon, truth, land, tap_z_mm)
     metrics.update(_physics_health(verdicts))
+    metrics.update(n_taps_unreconstructed=len(failed), unreconstructed_taps=failed)
     metrics.update(n_taps=len(js), n_points_raw=int(len(merged.selection.points_mm)),
                    n_points_merged=int(len(merged.points_mm)),
                    n_overlap_points=int(merged.selection.overlap.sum()))

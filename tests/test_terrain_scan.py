@@ -151,10 +151,45 @@ def _tap_job(region: str, index: int, tmp_path):
 @pytest.mark.slow
 @pytest.mark.physics
 @pytest.mark.render
-@pytest.mark.xfail(strict=True, raises=B.TerrainScanError, reason=(
+def test_a_tap_the_pipeline_cannot_reconstruct_is_kept_with_its_reason(tmp_path, monkeypatch):
+    """A frame the pipeline cannot turn into a surface (too few markers identified) is an outcome of the scan, not
+    an error: the tap file holds no points and the reason, a resumed scan does not recompute it, and its region is
+    merged and scored from the other taps with lower coverage."""
+    from benchmarks.experiments import terrain as E
+    from benchmarks.registry import Context
+
+    ctx = Context(out_dir=tmp_path / "ok", quick=True, progress=False, params={"sensor": "ideal", "workers": 1})
+    good = E.run(ctx)
+    region = B.QUICK_REGIONS[0]
+    outcome = B._tap_outcome
+
+    def first_tap_without_surface(job):
+        if job.region == region and job.index == 0:     # what the twin back end gives for such a frame
+            return np.empty((0, 3)), job.origin_mm(), None, "too few markers identified for a surface (3 of 127)"
+        return outcome(job)
+
+    monkeypatch.setattr(B, "_tap_outcome", first_tap_without_surface)
+    ctx = Context(out_dir=tmp_path / "bad", quick=True, progress=False, params={"sensor": "ideal", "workers": 1})
+    out = E.run(ctx)
+    assert out.metrics["unreconstructed_taps"][0] == 1 and good.metrics["unreconstructed_taps"][0] == 0
+    rows = {r["region"]: r for r in out.tables["regions"]}
+    good_rows = {r["region"]: r for r in good.tables["regions"]}
+    assert rows[region]["n_taps_unreconstructed"] == 1
+    assert rows[region]["covered_fraction"] < good_rows[region]["covered_fraction"]
+    assert np.isfinite(rows[region]["rms_err_mm"])                    # scored from the taps that have points
+    assert any("could not reconstruct" in n and f"{region}#0" in n for n in out.notes)
+    tap = B.load_tap(tmp_path / "bad" / "terrain_scan" / "taps" / f"{region}_000.npz")
+    assert len(tap.points_sensor_mm) == 0 and tap.failure.startswith("too few markers")
+    job = B.plan_jobs([region], tmp_path / "bad" / "terrain_scan", sensor="ideal", tap_z_mm=0.0, seed=0,
+                      max_taps=4)[region][0]
+    assert B._tap_is_done(job)                                        # a resumed scan keeps the outcome
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
     "KNOWN DEFECT: with face contact the 0.5 mm skin now follows Andes tap 4's steep flank (valid press: 0.013 mm "
     "inside, settled) instead of passing 0.6-1 mm into it, the pins crowd on the flank, and the pipeline no longer "
-    "identifies enough markers for a surface (with vertex contact it identified 216/217 on a skin inside the relief)"))
+    "identifies enough markers for a surface (with vertex contact it identified 216/217 on a skin inside the relief): "
+    "the tap is kept with its reason and no points"))
 def test_twin_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
     """Andes tap 4: the steepest flank of the scan; the tap's points must land on the relief in the global frame."""
     from pipeline.geometry.merge import tap_points_to_global
@@ -162,7 +197,9 @@ def test_twin_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
     tmap = T.load_terrain_map()
     job = _tap_job("andes", 4, tmp_path)
     B.run_tap(job)
-    pts, origin, verdict = B.load_tap(job.path)                    # the pressed frame's physics travels with the tap
+    tap = B.load_tap(job.path)
+    pts, origin, verdict = tap.points_sensor_mm, tap.origin_mm, tap.validity   # the frame's physics travels with it
+    assert tap.failure is None, tap.failure
     assert len(pts) >= 0.9 * B._design().marker_count              # the pipeline matched (almost) every marker
     assert {"valid", "reasons", "penetration_max_mm", "settled"} <= set(verdict)
     if verdict["penetration_max_mm"] > 0.05:

@@ -25,6 +25,7 @@ from benchmarks.registry import Context, Finding, Result, register
         "regions": "1",
         "taps": "1",
         "invalid_taps": "1",
+        "unreconstructed_taps": "1",
         "invalid_regions": "1",
         "skin_penetration_max_mm": "mm",
         "rms_err_mm_mean_all": "mm",
@@ -74,6 +75,8 @@ def run(ctx: Context) -> Result:
     out.metric("regions", len(all_regs), "1")
     out.metric("taps", rec["n_taps"], "1")
     out.metric("invalid_taps", n_invalid_taps, "1")
+    failed = [t for m in all_regs.values() for t in m.get("unreconstructed_taps", [])]
+    out.metric("unreconstructed_taps", len(failed), "1")
     out.metric("invalid_regions", len(all_regs) - len(regs), "1")
     pens = [float(m["penetration_max_mm"]) for m in all_regs.values()
             if m.get("physics_checked") and np.isfinite(m.get("penetration_max_mm", np.nan))]
@@ -85,6 +88,9 @@ def run(ctx: Context) -> Result:
                          f"({n_invalid_taps} tap(s): " + "; ".join(
                              f"{k}: {', '.join(m.get('invalid_reasons', []))}" for k, m in all_regs.items()
                              if not m.get("physics_valid", True)) + "); kept out of the scores above.")
+    if failed:
+        out.notes.append(f"{len(failed)} tap(s) gave a frame the pipeline could not reconstruct; their regions are "
+                         "merged and scored from the other taps (lower coverage): " + "; ".join(failed) + ".")
     out.notes.append(f"Tap back end: '{sensor}' ({'MuJoCo skin + renderer + pipeline' if sensor == 'twin' else 'ideal conforming skin at the marker x-y: scan geometry and merge only'}); "
                      f"outputs of benchmarks.terrain in terrain_scan/.")
     if setup is not None:
