@@ -443,24 +443,28 @@ def test_nodal_volumetric_sim_applies_the_energy_gradient_and_restores_exactly()
     assert np.array_equal(sim.data.qpos, a)
 
 
-def test_nodal_volumetric_stiffness_unlocks_a_nearly_incompressible_gel():
+@pytest.mark.parametrize("layered, force_max", [(False, 1.30), (True, 1.15)], ids=["production_levels", "layered"])
+def test_nodal_volumetric_stiffness_unlocks_a_nearly_incompressible_gel(layered, force_max):
     """Sphere R = 10 mm into the uniform gel (nu = 0.49; bonded layer h = T + G) at 1 and 3 mm. Element-wise the
     linear tetrahedra lock: force 2.25-2.39x the bonded-layer Hertz solution (Dimitriadis et al. 2002). With the
-    bulk stiffness on averaged nodal volumes the force is within 30 % of it (measured 1.18-1.23x; the same
-    mesh at nu = 0.3, far from locking, is 1.11-1.14x: the rest is the 1.5 mm mesh's own error) and the contact
-    radius within 15 % of sqrt(R delta) (measured 0.98-1.09); the presses settle without MuJoCo warnings."""
-    from benchmarks.experiments.physics import RADIUS_MM, _contact_radius_mm, _press_series, _uniform, \
-        dimitriadis_force_n
+    bulk stiffness on averaged nodal volumes the force is within 30 % of it on the production gel levels
+    (measured 1.18-1.23x; the same mesh at nu = 0.3, far from locking, is 1.11-1.14x: the rest is the mesh's own
+    error, a 6 mm bottom cell) and within the 15 % target on the gel refined through the thickness (seven
+    levels: measured 1.12 / 1.14); the contact radius within 15 % of sqrt(R delta) (measured 0.98-1.09); the
+    presses settle without MuJoCo warnings."""
+    from benchmarks.experiments.physics import LAYERED_GEL_LEVELS_MM, RADIUS_MM, _contact_radius_mm, _press_series, \
+        _uniform, dimitriadis_force_n
 
     d = load_design("hexagon127")
     u = _uniform(d, 0.49)
     depths = [1.0, 3.0]
-    res, _, sim = _press_series(u, depths, MeshSpec(volumetric="nodal"))
+    mesh = MeshSpec(volumetric="nodal", gel_levels_mm=LAYERED_GEL_LEVELS_MM) if layered else MeshSpec(volumetric="nodal")
+    res, _, sim = _press_series(u, depths, mesh)
     h = u.skin.thickness_mm + u.optics.gel_thickness_mm
     theory, _ = dimitriadis_force_n(d.gel.youngs_modulus_mpa, 0.49, RADIUS_MM, h, depths)
     for (dep, f, tr, st, _), ft in zip(res, theory):
         assert st.converged, dep
-        assert 0.85 <= f / ft <= 1.30, (dep, f / ft)
+        assert 0.85 <= f / ft <= force_max, (dep, f / ft)
         assert abs(_contact_radius_mm(tr, dep) / np.sqrt(RADIUS_MM * dep) - 1) <= 0.15, dep
     assert sim.warnings() == {}
 
