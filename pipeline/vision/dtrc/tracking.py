@@ -57,6 +57,16 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
     return _pair(left, right, code_rings(left, design), code_rings(right, design), _marker_count(design))
 
 
+def _expected(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, ids_before: np.ndarray) -> np.ndarray:
+    """Where each marker certified in the last frame (``xy``, ``ids``) is expected now: moved on by its
+    motion since the frame before (``xy_before``, ``ids_before``); NaN where it was not certified then
+    (the frame-to-frame map then starts from its last position)."""
+    out = np.full_like(xy, np.nan)
+    _, a, b = np.intersect1d(ids, ids_before, assume_unique=True, return_indices=True)
+    out[a] = 2 * xy[a] - xy_before[b]
+    return out
+
+
 class DTRCTracker:
     """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
     previous frame's identified markers propose ids where coding alone cannot (crowding, large
@@ -71,13 +81,17 @@ class DTRCTracker:
         self.temporal = temporal
         self.last_codings: tuple[RingCoding, RingCoding] | None = None
         self._previous: list | None = None
+        self._before: list | None = None
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
         prev = self._previous if self.temporal else None
+        if prev is not None:
+            prev = [(xy, i, _expected(xy, i, *before)) for (xy, i), before in zip(prev, self._before)]
         lc = code_rings(left, self.design, previous=None if prev is None else prev[0])
         rc = code_rings(right, self.design, previous=None if prev is None else prev[1])
         self.last_codings = (lc, rc)
-        self._previous = [(b.xy_px[c.ids >= 0], c.ids[c.ids >= 0]) for b, c in ((left, lc), (right, rc))]
+        self._before = self._previous if self._previous is not None else [(np.empty((0, 2)), np.empty(0, np.int64))] * 2
+        self._previous = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     __call__ = update
@@ -93,6 +107,7 @@ class DTRCTracker:
     def reset(self) -> None:
         self.last_codings = None
         self._previous = None
+        self._before = None
 
 
 class NearestNeighbourTracker:

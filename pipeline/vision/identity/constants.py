@@ -98,7 +98,7 @@ BEYOND_EMPTY = 0.5
 MIN_PATCH = 4
 
 # per-slot reason codes (0 = identified)
-R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION, R_CONTRADICTED = range(8)
+R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION, R_CONTRADICTED, R_NOT_FOLLOWED = range(9)
 #: internal status: the test needs a blob search (run only for the blobs whose test needs one)
 _NEED_SEARCH = 99
 REASONS = {
@@ -109,4 +109,5 @@ REASONS = {
     R_ANCHOR: "in a patch that could be shifted along the lattice (not anchored)",
     R_ROTATION: "pattern rotation beyond the unambiguous range",
     R_CONTRADICTED: "two certified readings disagree (this frame's coding and the previous frame's ids)",
+    R_NOT_FOLLOWED: "carried id not confirmed by the frame-to-frame map",
 }
