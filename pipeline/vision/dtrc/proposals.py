@@ -11,7 +11,7 @@ from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
-                                      contradicted, follow, frame_to_frame, grow, lattice_of, register_seed)
+                                      contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
 
 def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -40,13 +40,13 @@ markers, is allowed).
 
 The rule's parts: :mod:`.constants` (gates, reason codes), :mod:`.lattice` (the design geometry),
 :mod:`.fits` (local affine fits), :mod:`.fans` and :mod:`.consistency` (test 1), :mod:`.anchoring`
-(tests 2 and 3), :mod:`.certify` (the rule, growth, temporal following), :mod:`.temporal` (certification
-by the frame-to-frame map), :mod:`.seed` (a lattice registration proposal), :mod:`.neighbours` (the
+(tests 2 and 3), :mod:`.certify` (the rule, growth), :mod:`.temporal` (certification of carried ids by
+the frame-to-frame map), :mod:`.seed` (a lattice registration proposal), :mod:`.neighbours` (the
 frame's blob search structures).
 """
 
 
-from pipeline.vision.identity.certify import certify, certify_whole, contradicted, follow, grow
+from pipeline.vision.identity.certify import certify, certify_whole, contradicted, grow
 from pipeline.vision.identity.consistency import consistent
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, GATE, GROW_GATE, MAX_STRETCH, R_ANCHOR, R_CONTRADICTED,
                                                 R_NO_BLOB, R_NOT_FOLLOWED, R_ROTATION, REASONS, ROTATION_MARGIN_DEG)
@@ -57,5 +57,5 @@ from pipeline.vision.identity.temporal import frame_to_frame
 
 __all__ = ["GATE", "GROW_GATE", "ANCHOR_EVIDENCE", "MAX_STRETCH", "ROTATION_MARGIN_DEG", "REASONS", "R_ANCHOR",
            "R_CONTRADICTED", "R_NO_BLOB", "R_NOT_FOLLOWED", "R_ROTATION", "Lattice", "lattice_of", "consistent", "certify",
-           "certify_whole", "contradicted", "follow", "frame_to_frame", "grow", "register_seed", "rotation_limit_deg",
+           "certify_whole", "contradicted", "frame_to_frame", "grow", "register_seed", "rotation_limit_deg",
            "use_triangulation"]

@@ -17,11 +17,6 @@ AMBIGUITY_MARGIN = 0.15
 #: blob 0.2-0.3 separations from such a marker in a strongly pressed view was nearer the
 #: extrapolated prediction than the marker itself.
 CLOSE_BLOB = 0.4
-#: Temporal certification (:func:`follow`): design neighbours identified in both frames a followed
-#: marker's motion is taken from, and the gate (fraction of the blob's nearest-neighbour distance)
-#: about its prediction.
-FOLLOW_NEIGHBOURS = 3
-FOLLOW_GATE = 0.35
 #: Markers of evidence needed to exclude an alternative reading of a patch.
 ANCHOR_EVIDENCE = 2
 #: Largest ratio of the two singular values of a local affine map. Pins crowding on a steep flank
