@@ -84,6 +84,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     if len(cands) > 1 and count(cands[1]) > 0:
         cands.append(run(_merge(cands[0][0], cands[1][0])))
     ids, reason = max(cands, key=count)
+    rule_ids = ids
     if carried is not None and (carried >= 0).any():
         bad = _temporally_contradicted(previous, pts, ids, carried)
         if bad.any():
@@ -93,7 +94,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             msgs.append(f"withdrew {int(bad.sum())} id(s) that the previous frame's markers contradict")
     followed = None
     if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
-        ids, reason, followed = _with_frame_to_frame(previous, pts, ids, reason, lat, msgs)
+        ids, reason, followed = _with_frame_to_frame(previous, pts, ids, rule_ids, reason, lat, msgs)
     reason[ids[ids >= 0]] = 0
     n_certified = int((ids >= 0).sum())
     if defects or n_certified < n_slots:
@@ -110,8 +111,8 @@ F2F_CONTRADICTED_SHARE = 0.2
 F2F_FEW_CONTRADICTIONS = 2
 
 
-def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, reason: np.ndarray, lat, msgs: list[str]
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, rule_ids: np.ndarray, reason: np.ndarray, lat,
+                         msgs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Add the markers the frame-to-frame map certifies (:func:`pipeline.vision.identity.frame_to_frame`)
     to the design-to-image ids ``ids``: where the pins crowd, the design-to-image map is not locally
     affine and the certainty rule withdraws correct ids, while one frame's increment is still small
@@ -121,7 +122,9 @@ def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, reason: np.
     frame-to-frame map has nothing to say). Many disagreements: when the rule read nearly the whole
     pattern, the frame-to-frame map is set aside (the frame moved too far to be followed); otherwise
     only the agreement is kept. A previous marker certified by neither is unmatched with its own
-    reason.
+    reason. Disagreement is judged against ``rule_ids``, the rule's reading before the previous
+    frame's ids withdrew any of it (:func:`_temporally_contradicted`): an id withdrawn there is not
+    handed to the reading that contradicted it.
 
     Returns (ids, reasons, followed): ``followed`` is the frame-to-frame reading when many
     disagreements kept it from the output (None otherwise). Nothing in one frame says which reading
@@ -132,18 +135,19 @@ def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, reason: np.
     ids, reason = ids.copy(), reason.copy()
     followed = None
     if (t >= 0).any():
-        bad = contradicted(ids, t) | contradicted(t, ids)
+        bad = contradicted(rule_ids, t) | contradicted(t, rule_ids)
         n_bad = int(bad.sum())
         if n_bad:
             agree = (ids >= 0) & (ids == t)
-            few = n_bad <= max(F2F_FEW_CONTRADICTIONS, F2F_CONTRADICTED_SHARE * int(((ids >= 0) & (t >= 0)).sum()))
+            few = n_bad <= max(F2F_FEW_CONTRADICTIONS,
+                               F2F_CONTRADICTED_SHARE * int(((rule_ids >= 0) & (t >= 0)).sum()))
             if few:
-                comp = _components(ids, _blob_of(ids, len(lat.xy)), lat.nbr)
-                drop_d = (ids >= 0) & np.isin(comp, np.unique(comp[bad & (ids >= 0)])) & ~agree
+                comp = _components(rule_ids, _blob_of(rule_ids, len(lat.xy)), lat.nbr)
+                drop_d = (ids >= 0) & np.isin(comp, np.unique(comp[bad & (rule_ids >= 0)])) & ~agree
                 drop_t = bad & (t >= 0)
                 msgs.append(f"withdrew {int((drop_d | drop_t).sum())} id(s) where the frame-to-frame map and this "
                             "frame's rule disagree")
-            elif int((ids >= 0).sum()) >= SEED_BELOW * min(len(lat.xy), len(pts)):
+            elif int((rule_ids >= 0).sum()) >= SEED_BELOW * min(len(lat.xy), len(pts)):
                 # the rule read (nearly) the whole pattern, anchored by its whole outline: the skin
                 # moved so far since the previous frame that its markers were followed to their
                 # neighbours' blobs
