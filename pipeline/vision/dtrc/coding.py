@@ -82,12 +82,12 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         Marker centres of ONE view (px).
     design : SensorDesign
         Gives the ring count (``pattern.layers``), ring sizes and canonical ids.
-    previous : (xy_px (M, 2), ids (M,)[, expected_px (M, 2)]), optional
+    previous : (xy_px (M, 2), ids (M,)[, xy_px_before (K, 2), ids_before (K,)]), optional
         The identified markers of the previous frame of the same view: they propose ids
         (:func:`carry_ids`) where ring coding cannot, certified like any other proposal, and keep
         their ids where the frame-to-frame map certifies which blob each became
-        (:func:`pipeline.vision.identity.frame_to_frame`; ``expected_px``: where each is expected now
-        at its last velocity, NaN where unknown).
+        (:func:`pipeline.vision.identity.frame_to_frame`; the frame before the previous one, when
+        given, sets where each marker is expected at its last velocity).
 
     Returns
     -------
@@ -168,8 +168,8 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
     if previous is not None:
-        previous = (np.asarray(previous[0], np.float64).reshape(-1, 2), np.asarray(previous[1], np.int64),
-                    *[np.asarray(e, np.float64).reshape(-1, 2) for e in previous[2:3]])
+        previous = tuple(np.asarray(a, np.float64).reshape(-1, 2) if k % 2 == 0 else np.asarray(a, np.int64)
+                         for k, a in enumerate(previous[:4]))
     ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),

@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.consistency import _blob_of
+from pipeline.vision.identity.temporal import expected_positions
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
                                       contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
@@ -131,7 +132,8 @@ def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, rule_ids: n
     is wrong; following it on keeps the question open in the next frame, where it withholds again
     whatever this frame's rule reads differently (a rule misled by crowding keeps disagreeing with
     the markers' continuous motion), instead of letting the rule's reading stand alone."""
-    t = frame_to_frame(previous[0], previous[1], pts, previous[2] if len(previous) > 2 else None, lat.nbr)
+    expected = expected_positions(*previous) if len(previous) == 4 else None
+    t = frame_to_frame(previous[0], previous[1], pts, expected, lat.nbr)
     ids, reason = ids.copy(), reason.copy()
     followed = None
     if (t >= 0).any():

@@ -57,16 +57,6 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
     return _pair(left, right, code_rings(left, design), code_rings(right, design), _marker_count(design))
 
 
-def _expected(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, ids_before: np.ndarray) -> np.ndarray:
-    """Where each marker certified in the last frame (``xy``, ``ids``) is expected now: moved on by its
-    motion since the frame before (``xy_before``, ``ids_before``); NaN where it was not certified then
-    (the frame-to-frame map then starts from its last position)."""
-    out = np.full_like(xy, np.nan)
-    _, a, b = np.intersect1d(ids, ids_before, assume_unique=True, return_indices=True)
-    out[a] = 2 * xy[a] - xy_before[b]
-    return out
-
-
 class DTRCTracker:
     """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
     previous frame's identified markers propose ids where coding alone cannot (crowding, large
@@ -86,7 +76,7 @@ class DTRCTracker:
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
         prev = self._previous if self.temporal else None
         if prev is not None:
-            prev = [(xy, i, _expected(xy, i, *before)) for (xy, i), before in zip(prev, self._before)]
+            prev = [(xy, i, *before) for (xy, i), before in zip(prev, self._before)]
         lc = code_rings(left, self.design, previous=None if prev is None else prev[0])
         rc = code_rings(right, self.design, previous=None if prev is None else prev[1])
         self.last_codings = (lc, rc)

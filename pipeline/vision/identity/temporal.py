@@ -12,9 +12,9 @@ against its neighbours' motion, not assumed.
 Procedure (:func:`frame_to_frame`): the correspondences start from mutual nearest neighbours
 (a previous marker's expected position - its previous position moved on at the velocity of the last
 frame, where known - and a current blob) within :data:`F2F_BOOTSTRAP` local spacings that pass the
-ratio test both ways; then every previous marker is predicted from its :data:`F2F_NEIGHBOURS` nearest previous markers that currently
-have a correspondence, and the correspondences are replaced by those that pass the tests below;
-repeated until nothing changes. A marker's correspondence is accepted only when
+ratio test both ways; then every previous marker is predicted from its :data:`F2F_NEIGHBOURS`
+nearest previous markers that currently have a correspondence, and the correspondences are replaced
+by those that pass the tests below; repeated until nothing changes. A marker's correspondence is accepted only when
 
 * at least :data:`F2F_MIN_FIT` of its neighbours have one, spread in two directions, and the affine
   map fits them all to within :data:`F2F_FIT_RESIDUAL` local spacings (one neighbour followed to the
@@ -77,6 +77,17 @@ F2F_ROUNDS = 12
 def _nn_dist(tree: cKDTree, xy: np.ndarray) -> np.ndarray:
     d = tree.query(xy, k=2)[0][:, 1]
     return np.where(np.isfinite(d), d, np.inf)
+
+
+def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, ids_before: np.ndarray) -> np.ndarray:
+    """Where each marker certified in the last frame (``xy``, ``ids``) is expected now: moved on by its
+    motion since the frame before (``xy_before``, ``ids_before``); NaN where it was not certified then
+    (the frame-to-frame map then starts from its last position)."""
+    if len(ids) == 0:
+        return np.empty((0, 2))
+    then = np.full((int(max(ids.max(), ids_before.max(initial=0))) + 1, 2), np.nan)
+    then[ids_before] = xy_before
+    return 2.0 * xy - then[ids]
 
 
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
