@@ -30,6 +30,9 @@ missing blob leaves its marker unmatched; a spurious blob next to a marker makes
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -90,6 +93,78 @@ def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, i
     return 2.0 * xy - then[ids]
 
 
+@numba.njit(cache=True)
+def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
+    """Each previous marker's current position predicted by the affine map of its neighbours' motion
+    (previous -> current positions of the neighbours ``nb`` within reach ``near`` that have a
+    correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
+    usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
+    deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
+    local spacings; the previous position where not usable."""
+    m, k = nb.shape
+    pred = P.copy()
+    ok = np.zeros(m, np.bool_)
+    for i in range(m):
+        n = 0
+        sx = sy = su = sv = 0.0
+        for q in range(k):
+            j = nb[i, q]
+            if near[i, q] and corr[j] >= 0:
+                n += 1
+                sx += P[j, 0] - P[i, 0]
+                sy += P[j, 1] - P[i, 1]
+                su += pts[corr[j], 0] - P[j, 0]
+                sv += pts[corr[j], 1] - P[j, 1]
+        if n < min_fit:
+            continue
+        mx, my, mu, mv = sx / n, sy / n, su / n, sv / n
+        cxx = cxy = cyy = cux = cuy = cvx = cvy = 0.0
+        for q in range(k):
+            j = nb[i, q]
+            if near[i, q] and corr[j] >= 0:
+                x = P[j, 0] - P[i, 0] - mx
+                y = P[j, 1] - P[i, 1] - my
+                u = pts[corr[j], 0] - P[j, 0] - mu
+                v = pts[corr[j], 1] - P[j, 1] - mv
+                cxx += x * x
+                cxy += x * y
+                cyy += y * y
+                cux += u * x
+                cuy += u * y
+                cvx += v * x
+                cvy += v * y
+        tr = (cxx + cyy) / n
+        det = (cxx * cyy - cxy * cxy) / (n * n)
+        lmin = 0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0))
+        s = spread * s_prev[i]
+        if lmin < s * s:
+            continue
+        d = cxx * cyy - cxy * cxy
+        # motion = mean + B (X - mean X), B = [[cux, cuy], [cvx, cvy]] C^-1
+        b00 = (cux * cyy - cuy * cxy) / d
+        b01 = (cuy * cxx - cux * cxy) / d
+        b10 = (cvx * cyy - cvy * cxy) / d
+        b11 = (cvy * cxx - cvx * cxy) / d
+        lim = max_residual * s_prev[i]
+        good = True
+        for q in range(k):
+            j = nb[i, q]
+            if near[i, q] and corr[j] >= 0:
+                x = P[j, 0] - P[i, 0] - mx
+                y = P[j, 1] - P[i, 1] - my
+                ru = pts[corr[j], 0] - P[j, 0] - (mu + b00 * x + b01 * y)
+                rv = pts[corr[j], 1] - P[j, 1] - (mv + b10 * x + b11 * y)
+                if ru * ru + rv * rv > lim * lim:
+                    good = False
+                    break
+        if not good:
+            continue
+        ok[i] = True
+        pred[i, 0] = P[i, 0] + mu - b00 * mx - b01 * my
+        pred[i, 1] = P[i, 1] + mv - b10 * mx - b11 * my
+    return pred, ok
+
+
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
     """Row-wise median of ``v`` over ``mask`` (``default`` for rows without any)."""
     w = np.where(mask, v, np.nan)
@@ -142,6 +217,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     if n < F2F_MIN_FIT + 1 or m < F2F_MIN_FIT + 1:
         return out
     P = np.ascontiguousarray(prev_xy, dtype=np.float64)
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
     tree = cKDTree(pts)
     ptree = cKDTree(P)
     s_cur = _nn_dist(tree, pts)
@@ -150,8 +226,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     dn, nb = ptree.query(P, k=k + 1)
     dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
     near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
-    nb = np.where(near, nb, 0)
-    X = P[nb] - P[:, None, :]                                  # (M, k, 2) neighbours about the marker
+    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
     # a marker whose crowded neighbour merged with it into one blob has a wide spacing itself; its
     # neighbours' spacing says how crowded the skin is there
     s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
@@ -167,26 +242,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
     corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
     for _ in range(F2F_ROUNDS):
-        cj = corr[nb]
-        w = near & (cj >= 0)                                   # (M, k)
-        cnt = w.sum(axis=1)
-        D = np.where(w[..., None], pts[np.maximum(cj, 0)] - P[nb], 0.0)   # neighbours' motion
-        A = np.concatenate([np.ones(X.shape[:2] + (1,)), X], axis=2) * w[..., None]
-        G = np.einsum("mki,mkj->mij", A, A)
-        ok = cnt >= F2F_MIN_FIT
-        # spread: smaller principal variance of the weighted neighbour positions
-        wc = np.maximum(cnt, 1)[:, None]
-        mean = np.einsum("mk,mki->mi", w.astype(float), X) / wc
-        C = np.einsum("mk,mki,mkj->mij", w.astype(float), X, X) / wc[..., None] - mean[:, :, None] * mean[:, None, :]
-        tr, det = C[:, 0, 0] + C[:, 1, 1], C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-        lmin = 0.5 * tr - np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
-        ok &= lmin >= (F2F_SPREAD * s_prev) ** 2
-        coef = np.zeros((m, 3, 2))
-        if ok.any():
-            coef[ok] = np.linalg.solve(G[ok], np.einsum("mki,mkj->mij", A[ok], D[ok]))
-        res = np.linalg.norm(np.einsum("mki,mij->mkj", A, coef) - D, axis=2)      # 0 where unweighted
-        ok &= res.max(axis=1) <= F2F_FIT_RESIDUAL * s_prev
-        pred = np.where(ok[:, None], P + coef[:, 0, :], P)
+        pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL)
         # where the skin crowds in this very frame, the predictions crowd with it
         s_pred = np.minimum(s_prev, _nn_dist(cKDTree(pred), pred))
         new = _accept(pred, ok, tree, pts, s_cur, s_pred, gate)
