@@ -60,7 +60,9 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
 class DTRCTracker:
     """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
     previous frame's identified markers propose ids where coding alone cannot (crowding, large
-    deformation, partial occlusion), under the same certainty rule.
+    deformation, partial occlusion), under the same certainty rule, and keep their ids where the
+    frame-to-frame map certifies which blob each became (:func:`pipeline.vision.identity.frame_to_frame`;
+    the frame before that gives each marker's last velocity).
 
     ``update(left, right) -> MarkerMatches`` (also callable). ``last_codings`` holds the two
     :class:`RingCoding` of the latest frame.

@@ -32,6 +32,15 @@ neighbours takes the nearest blob when it lies within :data:`GROW_GATE` local se
 least twice as near as the second-nearest blob (and 0.15 separations nearer), and no other free
 slot claims it; new ids then pass the same three tests.
 
+In a sequence (:class:`pipeline.vision.dtrc.DTRCTracker`) a fourth certification applies to the
+markers certified in the previous frame of the same view: **the frame-to-frame map**
+(:func:`frame_to_frame`). Where pins crowd (the crests of a narrow sine), the design-to-image map is
+not locally affine and test 1 withdraws correct ids, but one frame's increment still is smooth:
+a marker keeps its id when its neighbours' motion (a local affine fit, the marker excluded)
+predicts it within a tight gate of exactly one blob, mutually. Where the design-to-image rule and
+the frame-to-frame map disagree, neither reading is emitted there (see
+:func:`pipeline.vision.dtrc.proposals._with_frame_to_frame`).
+
 What remains possible, by construction: a blob that is not a marker but sits where a missing
 marker should be (within :data:`GROW_GATE` of its slot) is indistinguishable from that marker
 displaced, and takes its id. The identification benchmark therefore places spurious blobs at least
