@@ -506,11 +506,16 @@ def test_rim_row_lost_from_view_is_not_read_one_row_over():
     assert np.count_nonzero((alone.ids >= 0) & (alone.ids != t)) > 0   # why the sequence needs the check
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "KNOWN DEFECT: at 2.5 mm (frame 4) the right view reads the outer-rim blob of marker 24 as 108 "
-    "(two rows in; 106, 108, 110 undetected). Marker 24 was withdrawn at 2.0 mm, so the previous frame "
-    "holds no evidence for that blob; the runner's stereo check drops the pair (0 wrong 3-D ids), but "
-    "the view's coding is wrong"))
 def test_rim_press_sequence_views_never_carry_a_wrong_id():
+    """The same sequence to 5 mm: no view of any frame holds a wrong id. At 2.5 mm (frame 4) the right
+    view lost 106, 108, 110 and the rule alone read the outer-rim blob of marker 24 (withdrawn at
+    2.0 mm) as 108; now the frame-to-frame map disagrees with the rule's reading there and the blob
+    keeps no id (5 ids withdrawn where the two disagree). From
+    3.0 mm on, where the rule alone withdrew everything, the markers are followed frame to frame:
+    measured 215/191, 215/190, 209/189, 203/147, 176/133 (left/right) of the blobs at 3.0-5.0 mm."""
+    coded = {}
     for i, side, coding, truth in _replay(SEQUENCES / "sine_rim_press_hexagon217_sep180.npz"):
         assert not np.any((coding.ids >= 0) & (coding.ids != truth)), (i, side)
+        coded[(i, side)] = coding.coded
+    assert min(coded[(i, "left")] for i in range(5, 10)) >= 170
+    assert min(coded[(i, "right")] for i in range(5, 10)) >= 130

@@ -24,8 +24,9 @@ Per view (paper Sec. "Marker Localization", Alg. 1, Table III):
    is the mutual nearest within ``PREDICT_GATE`` pitches; slots without such a blob are *unmatched*
    (reported, never guessed).
 
-Tracking: identity is the code, so :class:`DTRCTracker` simply re-codes every frame (large, fast
-motions keep identity). :class:`NearestNeighbourTracker` is the paper's KNN baseline.
+Tracking: identity is the code, so :class:`DTRCTracker` re-codes every frame (large, fast motions
+keep identity); markers certified in the previous frame also keep their ids where the frame-to-frame
+map certifies them (pins crowding beyond what the design-to-image rule can read). :class:`NearestNeighbourTracker` is the paper's KNN baseline.
 
 Speed: with ~100-300 blobs per view, per-call overheads dominate, so the per-frame path (triangulation,
 nearest neighbours, carving and peeling, angular coding, pairing) runs as a few numba-compiled kernels

@@ -41,6 +41,11 @@ class RingCoding:
         Human-readable notes on mismatches.
     unmatched_reasons : tuple of str
         Why each of ``unmatched_ids`` was not identified (same order).
+    carried : (N,) int64
+        The ids the next frame of the sequence follows on from: ``ids``, except when the markers'
+        frame-to-frame motion and this frame's certainty rule disagreed widely, in which case only
+        their agreement is in ``ids`` and ``carried`` is the frame-to-frame reading (neither is
+        emitted alone; the next frame keeps testing one against the other).
     """
 
     ids: np.ndarray
@@ -51,6 +56,11 @@ class RingCoding:
     mesh_edges: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int64))
     messages: tuple[str, ...] = ()
     unmatched_reasons: tuple[str, ...] = ()
+    carried: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.carried is None:
+            object.__setattr__(self, "carried", self.ids)
 
     @property
     def complete(self) -> bool:
@@ -72,9 +82,12 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         Marker centres of ONE view (px).
     design : SensorDesign
         Gives the ring count (``pattern.layers``), ring sizes and canonical ids.
-    previous : (xy_px (M, 2), ids (M,)), optional
+    previous : (xy_px (M, 2), ids (M,)[, xy_px_before (K, 2), ids_before (K,)]), optional
         The identified markers of the previous frame of the same view: they propose ids
-        (:func:`carry_ids`) where ring coding cannot, certified like any other proposal.
+        (:func:`carry_ids`) where ring coding cannot, certified like any other proposal, and keep
+        their ids where the frame-to-frame map certifies which blob each became
+        (:func:`pipeline.vision.identity.frame_to_frame`; the frame before the previous one, when
+        given, sets where each marker is expected at its last velocity).
 
     Returns
     -------
@@ -155,8 +168,10 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         msgs.append(f"verification removed {removed} code(s); prediction coded "
                     f"{int((ids >= 0).sum()) - before + removed} more")
     if previous is not None:
-        previous = (np.asarray(previous[0], np.float64).reshape(-1, 2), np.asarray(previous[1], np.int64))
-    ids, reason = _certain_ids(pts, ids, design, failed, msgs, previous)
+        previous = tuple(np.asarray(a, np.float64).reshape(-1, 2) if k % 2 == 0 else np.asarray(a, np.int64)
+                         for k, a in enumerate(previous[:4]))
+    ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
-                      tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched))
+                      tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched),
+                      ids if followed is None else followed)

@@ -8,8 +8,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.design import SensorDesign
-from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, certify, certify_whole, consistent, contradicted, follow,
-                                      grow, lattice_of, register_seed)
+from pipeline.vision.identity.anchoring import _components
+from pipeline.vision.identity.consistency import _blob_of
+from pipeline.vision.identity.temporal import expected_positions
+from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
+                                      contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
 
 def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -42,7 +45,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     n_slots = len(lat.xy)
     reason = np.full(n_slots, R_NO_BLOB, np.int64)
     if len(pts) < 4:
-        return np.full(len(pts), -1, np.int64), reason
+        return np.full(len(pts), -1, np.int64), reason, None
     if int((proposal >= 0).sum()) == n_slots:
         # ring coding identified every marker (the common case, pressed frames included): the
         # certainty rule need only confirm it, in one compiled pass when there is no other blob
@@ -50,12 +53,12 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             if defects:
                 msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
             reason[:] = 0
-            return proposal.copy(), reason
+            return proposal.copy(), reason, None
         ids = certify(pts, proposal, lat, reason)
         if int((ids >= 0).sum()) == n_slots:
             if defects:
                 msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
-            return ids, reason
+            return ids, reason, None
         reason[:] = R_NO_BLOB
     # Each proposal is made locally consistent, grown and certified on its own (a wrong proposal
     # must not spoil a right one); the two best certified results are merged and certified again.
@@ -82,6 +85,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     if len(cands) > 1 and count(cands[1]) > 0:
         cands.append(run(_merge(cands[0][0], cands[1][0])))
     ids, reason = max(cands, key=count)
+    rule_ids = ids
     if carried is not None and (carried >= 0).any():
         bad = _temporally_contradicted(previous, pts, ids, carried)
         if bad.any():
@@ -89,16 +93,85 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             reason[ids[bad]] = R_CONTRADICTED
             ids[bad] = -1
             msgs.append(f"withdrew {int(bad.sum())} id(s) that the previous frame's markers contradict")
+    followed = None
     if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
-        before = int((ids >= 0).sum())
-        ids = follow(previous[0], previous[1], pts, ids, lat)
-        if int((ids >= 0).sum()) > before:
-            msgs.append(f"followed {int((ids >= 0).sum()) - before} marker(s) from the previous frame")
+        ids, reason, followed = _with_frame_to_frame(previous, pts, ids, rule_ids, reason, lat, msgs)
     reason[ids[ids >= 0]] = 0
     n_certified = int((ids >= 0).sum())
     if defects or n_certified < n_slots:
         msgs.append(f"certainty rule: {n_certified} of {n_slots} ids certain")
-    return ids, reason
+    return ids, reason, followed
+
+
+#: More contradictions than this fraction of the markers both certifications cover (and more than
+#: :data:`F2F_FEW_CONTRADICTIONS`) put the premise of one of them in doubt: a frame that moved so far
+#: that markers were followed to their neighbours' blobs (the rule's reading stands when it covers
+#: :data:`SEED_BELOW` of the pattern), or crowding beyond what the design-to-image rule can read
+#: (otherwise: only the markers on which both agree are kept).
+F2F_CONTRADICTED_SHARE = 0.2
+F2F_FEW_CONTRADICTIONS = 2
+
+
+def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, rule_ids: np.ndarray, reason: np.ndarray, lat,
+                         msgs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Add the markers the frame-to-frame map certifies (:func:`pipeline.vision.identity.frame_to_frame`)
+    to the design-to-image ids ``ids``: where the pins crowd, the design-to-image map is not locally
+    affine and the certainty rule withdraws correct ids, while one frame's increment is still small
+    and smooth. Two certified readings that disagree cannot both be right: a blob on which they
+    disagree (another id, or its id on another blob) loses both, and so does every design-to-image
+    id of the same patch (a patch read one lattice step over is wrong as a whole, also where the
+    frame-to-frame map has nothing to say). Many disagreements: when the rule read nearly the whole
+    pattern, the frame-to-frame map is set aside (the frame moved too far to be followed); otherwise
+    only the agreement is kept. A previous marker certified by neither is unmatched with its own
+    reason. Disagreement is judged against ``rule_ids``, the rule's reading before the previous
+    frame's ids withdrew any of it (:func:`_temporally_contradicted`): an id withdrawn there is not
+    handed to the reading that contradicted it.
+
+    Returns (ids, reasons, followed): ``followed`` is the frame-to-frame reading when many
+    disagreements kept it from the output (None otherwise). Nothing in one frame says which reading
+    is wrong; following it on keeps the question open in the next frame, where it withholds again
+    whatever this frame's rule reads differently (a rule misled by crowding keeps disagreeing with
+    the markers' continuous motion), instead of letting the rule's reading stand alone."""
+    expected = expected_positions(*previous) if len(previous) == 4 else None
+    t = frame_to_frame(previous[0], previous[1], pts, expected, lat.nbr)
+    ids, reason = ids.copy(), reason.copy()
+    followed = None
+    if (t >= 0).any():
+        bad = contradicted(rule_ids, t) | contradicted(t, rule_ids)
+        n_bad = int(bad.sum())
+        if n_bad:
+            agree = (ids >= 0) & (ids == t)
+            few = n_bad <= max(F2F_FEW_CONTRADICTIONS,
+                               F2F_CONTRADICTED_SHARE * int(((rule_ids >= 0) & (t >= 0)).sum()))
+            if few:
+                comp = _components(rule_ids, _blob_of(rule_ids, len(lat.xy)), lat.nbr)
+                drop_d = (ids >= 0) & np.isin(comp, np.unique(comp[bad & (rule_ids >= 0)])) & ~agree
+                drop_t = bad & (t >= 0)
+                msgs.append(f"withdrew {int((drop_d | drop_t).sum())} id(s) where the frame-to-frame map and this "
+                            "frame's rule disagree")
+            elif int((rule_ids >= 0).sum()) >= SEED_BELOW * min(len(lat.xy), len(pts)):
+                # the rule read (nearly) the whole pattern, anchored by its whole outline: the skin
+                # moved so far since the previous frame that its markers were followed to their
+                # neighbours' blobs
+                msgs.append(f"frame-to-frame map set aside: it contradicts {n_bad} id(s) of a whole reading")
+                return ids, reason, None
+            else:
+                drop_d, drop_t = (ids >= 0) & ~agree, (t >= 0) & ~agree
+                followed = t.copy()
+                msgs.append(f"the frame-to-frame map and this frame's rule disagree on {n_bad} marker(s): "
+                            f"kept the {int(agree.sum())} they agree on")
+            reason[ids[drop_d]] = R_CONTRADICTED
+            reason[t[drop_t]] = R_CONTRADICTED
+            ids[drop_d] = -1
+            t[drop_t] = -1
+        add = (ids < 0) & (t >= 0)
+        if add.any():
+            ids[add] = t[add]
+            msgs.append(f"frame-to-frame map certified {int(add.sum())} more marker(s)")
+    lost = np.setdiff1d(previous[1], ids[ids >= 0])
+    lost = lost[reason[lost] != R_CONTRADICTED]
+    reason[lost] = R_NOT_FOLLOWED
+    return ids, reason, followed
 
 
 #: A frame's motion is small when this fraction of its certified markers moved less than

@@ -60,7 +60,9 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
 class DTRCTracker:
     """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
     previous frame's identified markers propose ids where coding alone cannot (crowding, large
-    deformation, partial occlusion), under the same certainty rule.
+    deformation, partial occlusion), under the same certainty rule, and keep their ids where the
+    frame-to-frame map certifies which blob each became (:func:`pipeline.vision.identity.frame_to_frame`;
+    the frame before that gives each marker's last velocity).
 
     ``update(left, right) -> MarkerMatches`` (also callable). ``last_codings`` holds the two
     :class:`RingCoding` of the latest frame.
@@ -71,13 +73,17 @@ class DTRCTracker:
         self.temporal = temporal
         self.last_codings: tuple[RingCoding, RingCoding] | None = None
         self._previous: list | None = None
+        self._before: list | None = None
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
         prev = self._previous if self.temporal else None
+        if prev is not None:
+            prev = [(xy, i, *before) for (xy, i), before in zip(prev, self._before)]
         lc = code_rings(left, self.design, previous=None if prev is None else prev[0])
         rc = code_rings(right, self.design, previous=None if prev is None else prev[1])
         self.last_codings = (lc, rc)
-        self._previous = [(b.xy_px[c.ids >= 0], c.ids[c.ids >= 0]) for b, c in ((left, lc), (right, rc))]
+        self._before = self._previous if self._previous is not None else [(np.empty((0, 2)), np.empty(0, np.int64))] * 2
+        self._previous = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     __call__ = update
@@ -93,6 +99,7 @@ class DTRCTracker:
     def reset(self) -> None:
         self.last_codings = None
         self._previous = None
+        self._before = None
 
 
 class NearestNeighbourTracker:

@@ -32,6 +32,15 @@ neighbours takes the nearest blob when it lies within :data:`GROW_GATE` local se
 least twice as near as the second-nearest blob (and 0.15 separations nearer), and no other free
 slot claims it; new ids then pass the same three tests.
 
+In a sequence (:class:`pipeline.vision.dtrc.DTRCTracker`) a fourth certification applies to the
+markers certified in the previous frame of the same view: **the frame-to-frame map**
+(:func:`frame_to_frame`). Where pins crowd (the crests of a narrow sine), the design-to-image map is
+not locally affine and test 1 withdraws correct ids, but one frame's increment still is smooth:
+a marker keeps its id when its neighbours' motion (a local affine fit, the marker excluded)
+predicts it within a tight gate of exactly one blob, mutually. Where the design-to-image rule and
+the frame-to-frame map disagree, neither reading is emitted there (see
+:func:`pipeline.vision.dtrc.proposals._with_frame_to_frame`).
+
 What remains possible, by construction: a blob that is not a marker but sits where a missing
 marker should be (within :data:`GROW_GATE` of its slot) is indistinguishable from that marker
 displaced, and takes its id. The identification benchmark therefore places spurious blobs at least
@@ -40,20 +49,22 @@ markers, is allowed).
 
 The rule's parts: :mod:`.constants` (gates, reason codes), :mod:`.lattice` (the design geometry),
 :mod:`.fits` (local affine fits), :mod:`.fans` and :mod:`.consistency` (test 1), :mod:`.anchoring`
-(tests 2 and 3), :mod:`.certify` (the rule, growth, temporal following), :mod:`.seed` (a lattice
-registration proposal), :mod:`.neighbours` (the frame's blob search structures).
+(tests 2 and 3), :mod:`.certify` (the rule, growth), :mod:`.temporal` (certification of carried ids by
+the frame-to-frame map), :mod:`.seed` (a lattice registration proposal), :mod:`.neighbours` (the
+frame's blob search structures).
 """
 
 
-from pipeline.vision.identity.certify import certify, certify_whole, contradicted, follow, grow
+from pipeline.vision.identity.certify import certify, certify_whole, contradicted, grow
 from pipeline.vision.identity.consistency import consistent
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, GATE, GROW_GATE, MAX_STRETCH, R_ANCHOR, R_CONTRADICTED,
-                                                R_NO_BLOB, R_ROTATION, REASONS, ROTATION_MARGIN_DEG)
+                                                R_NO_BLOB, R_NOT_FOLLOWED, R_ROTATION, REASONS, ROTATION_MARGIN_DEG)
 from pipeline.vision.identity.lattice import Lattice, lattice_of, rotation_limit_deg
 from pipeline.vision.identity.neighbours import use_triangulation
 from pipeline.vision.identity.seed import register_seed
+from pipeline.vision.identity.temporal import frame_to_frame
 
 __all__ = ["GATE", "GROW_GATE", "ANCHOR_EVIDENCE", "MAX_STRETCH", "ROTATION_MARGIN_DEG", "REASONS", "R_ANCHOR",
-           "R_CONTRADICTED", "R_NO_BLOB", "R_ROTATION", "Lattice", "lattice_of", "consistent", "certify",
-           "certify_whole", "contradicted", "follow", "grow", "register_seed", "rotation_limit_deg",
+           "R_CONTRADICTED", "R_NO_BLOB", "R_NOT_FOLLOWED", "R_ROTATION", "Lattice", "lattice_of", "consistent", "certify",
+           "certify_whole", "contradicted", "frame_to_frame", "grow", "register_seed", "rotation_limit_deg",
            "use_triangulation"]

@@ -1,6 +1,6 @@
 """The certainty rule applied: :func:`certify` (consistency, anchoring, rotation), its one-pass
 :func:`certify_whole` for a complete proposal, :func:`grow` (free slots predicted from identified
-neighbours), :func:`follow` (markers carried from the previous frame) and :func:`contradicted`."""
+neighbours) and :func:`contradicted`."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchore
                                                 _components, _rotation_deg)
 from pipeline.vision.identity.consistency import _blob_of, _consistency, consistent
 from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
-                                                FOLLOW_GATE, FOLLOW_NEIGHBOURS, GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS,
+                                                GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS,
                                                 R_ANCHOR, R_FEW, R_NO_BLOB, R_OK, R_ROTATION)
 from pipeline.vision.identity.fits import _fit, _fit_sums, _gather
 from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
@@ -207,55 +207,6 @@ def contradicted(slot_of: np.ndarray, other: np.ndarray) -> np.ndarray:
     w = where_other[slot_of[mine]]
     bad[mine[(w >= 0) & (w != mine)]] = True
     return bad
-
-
-def follow(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, slot_of: np.ndarray, lat: Lattice,
-           max_rounds: int = 16) -> np.ndarray:
-    """Temporal certification: markers of the previous frame followed into this one.
-
-    A marker certain in the previous frame (``prev_xy`` (M, 2) px, ``prev_ids`` (M,)) but not
-    identified here is predicted at its previous position moved by the mean motion of at least
-    :data:`FOLLOW_NEIGHBOURS` of its design neighbours (within :data:`NEIGHBOURHOOD_PITCHES`)
-    identified in both frames. The nearest blob takes its id when it is within :data:`FOLLOW_GATE`
-    of its own nearest-neighbour distance from the prediction, at least twice as near as the
-    second-nearest blob, unidentified, and claimed by no other followed marker. Rounds repeat so
-    that followed markers carry their neighbours' motion on. Returns the ids with the followed
-    ones added. The skin moves smoothly between frames (a press, a slide), so where ring coding
-    and the local geometric tests cannot decide (crowding, strong deformation) the identity of
-    a marker is still fixed by where it was.
-    """
-    N = len(lat.xy)
-    out = slot_of.copy()
-    if len(pts) < 3 or len(prev_ids) == 0:
-        return out
-    P = np.full((N, 2), np.nan)
-    P[prev_ids] = prev_xy
-    tree = cKDTree(pts)
-    nn = tree.query(pts, k=2)[0][:, 1]
-    nb = lat.nbr2
-    valid_nb = nb >= 0
-    nb0 = np.where(valid_nb, nb, 0)
-    for _ in range(max_rounds):
-        C = np.full((N, 2), np.nan)
-        lab = np.flatnonzero(out >= 0)
-        C[out[lab]] = pts[lab]
-        moved = C - P                                         # NaN unless in both frames
-        ok_nb = valid_nb & np.isfinite(moved[nb0, 0])
-        cnt = ok_nb.sum(axis=1)
-        free = np.flatnonzero(np.isnan(C[:, 0]) & np.isfinite(P[:, 0]) & (cnt >= FOLLOW_NEIGHBOURS))
-        if len(free) == 0:
-            break
-        disp = np.where(ok_nb[free][..., None], moved[nb0[free]], 0.0).sum(axis=1) / cnt[free][:, None]
-        pred = P[free] + disp
-        d, j = tree.query(pred, k=2)
-        j1 = j[:, 0]
-        take = (d[:, 0] <= FOLLOW_GATE * nn[j1]) & (d[:, 1] >= 2 * d[:, 0]) & (out[j1] < 0)
-        u, c = np.unique(j1[take], return_counts=True)
-        take &= ~np.isin(j1, u[c > 1])
-        if not take.any():
-            break
-        out[j1[take]] = free[take]
-    return out
 
 
 def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, tree=None,

@@ -17,11 +17,6 @@ AMBIGUITY_MARGIN = 0.15
 #: blob 0.2-0.3 separations from such a marker in a strongly pressed view was nearer the
 #: extrapolated prediction than the marker itself.
 CLOSE_BLOB = 0.4
-#: Temporal certification (:func:`follow`): design neighbours identified in both frames a followed
-#: marker's motion is taken from, and the gate (fraction of the blob's nearest-neighbour distance)
-#: about its prediction.
-FOLLOW_NEIGHBOURS = 3
-FOLLOW_GATE = 0.35
 #: Markers of evidence needed to exclude an alternative reading of a patch.
 ANCHOR_EVIDENCE = 2
 #: Largest ratio of the two singular values of a local affine map. Pins crowding on a steep flank
@@ -98,7 +93,7 @@ BEYOND_EMPTY = 0.5
 MIN_PATCH = 4
 
 # per-slot reason codes (0 = identified)
-R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION, R_CONTRADICTED = range(8)
+R_OK, R_NO_BLOB, R_AMBIGUOUS, R_INCONSISTENT, R_FEW, R_ANCHOR, R_ROTATION, R_CONTRADICTED, R_NOT_FOLLOWED = range(9)
 #: internal status: the test needs a blob search (run only for the blobs whose test needs one)
 _NEED_SEARCH = 99
 REASONS = {
@@ -109,4 +104,5 @@ REASONS = {
     R_ANCHOR: "in a patch that could be shifted along the lattice (not anchored)",
     R_ROTATION: "pattern rotation beyond the unambiguous range",
     R_CONTRADICTED: "two certified readings disagree (this frame's coding and the previous frame's ids)",
+    R_NOT_FOLLOWED: "carried id not confirmed by the frame-to-frame map",
 }

@@ -1,0 +1,254 @@
+"""Frame-to-frame certification: a marker certified in the previous frame keeps its id when the
+frame-to-frame map alone says which current blob it became.
+
+The design-to-image map of a strongly pressed skin is not locally affine where pins crowd (the crests
+of a narrow sine), so the certainty rule withdraws correct ids there. The increment between two frames
+of a sequence is small and locally smooth even then: each marker's new position is predicted from its
+previous position moved by a local affine fit of its previous-frame neighbours' motion (previous ->
+current positions), and the marker takes the one blob within a tight gate of that prediction. The
+fit never uses the marker itself (leave-one-out), so a marker's own correspondence is always tested
+against its neighbours' motion, not assumed.
+
+Procedure (:func:`frame_to_frame`): the correspondences start from mutual nearest neighbours
+(a previous marker's expected position - its previous position moved on at the velocity of the last
+frame, where known - and a current blob) within :data:`F2F_BOOTSTRAP` local spacings that pass the
+ratio test both ways; then every previous marker is predicted from its :data:`F2F_NEIGHBOURS`
+nearest previous markers that currently have a correspondence, and the correspondences are replaced
+by those that pass the tests below; repeated until nothing changes. A marker's correspondence is accepted only when
+
+* at least :data:`F2F_MIN_FIT` of its neighbours have one, spread in two directions, and the affine
+  map fits them all to within :data:`F2F_FIT_RESIDUAL` local spacings (one neighbour followed to the
+  wrong blob is a whole spacing off, so the fit refuses to predict rather than mislead);
+* the nearest blob lies within :data:`F2F_GATE` local spacings of the prediction (:data:`F2F_GATE_ALONE`
+  next to a marker that was not followed), and the second-nearest blob is at least :data:`F2F_RATIO`
+  times and :data:`F2F_MARGIN` local spacings farther;
+* it is mutual: no other marker's prediction is nearly as near to that blob (same ratio and margin).
+
+A blob that moved more than the gate from where its neighbours' motion puts it loses its id; a
+missing blob leaves its marker unmatched; a spurious blob next to a marker makes it ambiguous.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+#: Gate about a marker's predicted position, as a fraction of the local spacing (the smallest of the
+#: nearest blob's nearest-neighbour distance now, the marker's and its neighbours' (median) in the
+#: previous frame, and the distance between the predictions: where pins crowd, the crowded distance).
+#: The prediction's error is the detector's noise plus the non-affine part of one frame's increment
+#: over two spacings: measured on the twin's narrow-sine presses in 0.5 and 1 mm steps, median 0.03,
+#: 99 % below 0.15 local spacings; a neighbour is a whole (local) spacing away.
+F2F_GATE = 0.2
+#: A marker one of whose immediate design neighbours was not followed into the previous frame (lost
+#: where the pins crowded until the detector no longer separated them) may share its blob with that
+#: neighbour, whose centre lies between the two: its gate is this tighter one (the detector's noise
+#: and a press's increment over two spacings leave ~0.03 spacings).
+F2F_GATE_ALONE = 0.1
+#: The correspondences start from markers that moved less than this fraction of the local spacing
+#: (nearest blob to the previous position). It is what the certification rests on: a frame that
+#: moved by more than 1 - F2F_BOOTSTRAP spacings between frames would be followed to the neighbours'
+#: blobs, or a marker's motion that changed by that much from one frame to the next. A press at a
+#: steady rate changes its increment by a few hundredths of a spacing a frame.
+F2F_BOOTSTRAP = 0.15
+#: The second-nearest blob (and the second-nearest prediction to the blob) must be at least this many
+#: times farther than the nearest ...
+F2F_RATIO = 2.0
+#: ... and this many local spacings farther.
+F2F_MARGIN = 0.15
+#: Previous-frame markers (nearest first) a marker's increment is fitted from (two shells of a hexagonal
+#: lattice: a marker beside a straight front of followed markers has four of them) ...
+F2F_NEIGHBOURS = 12
+#: ... within this many previous local spacings of it ...
+F2F_RADIUS = 2.5
+#: ... of which at least this many must have a correspondence (an affine map needs three; the fourth
+#: makes one wrong neighbour visible in the residual).
+F2F_MIN_FIT = 4
+#: Largest residual of a neighbour in the fit, in local spacings.
+F2F_FIT_RESIDUAL = 0.15
+#: The neighbours' previous positions must spread in two directions: the smaller principal standard
+#: deviation at least this fraction of the local spacing (collinear neighbours fix no affine map).
+F2F_SPREAD = 0.25
+#: Rounds of prediction (a correspondence reaches a marker from neighbours one ring nearer the
+#: bootstrapped ones each round).
+F2F_ROUNDS = 12
+
+
+def _nn_dist(tree: cKDTree, xy: np.ndarray) -> np.ndarray:
+    d = tree.query(xy, k=2)[0][:, 1]
+    return np.where(np.isfinite(d), d, np.inf)
+
+
+def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, ids_before: np.ndarray) -> np.ndarray:
+    """Where each marker certified in the last frame (``xy``, ``ids``) is expected now: moved on by its
+    motion since the frame before (``xy_before``, ``ids_before``); NaN where it was not certified then
+    (the frame-to-frame map then starts from its last position)."""
+    if len(ids) == 0:
+        return np.empty((0, 2))
+    then = np.full((int(max(ids.max(), ids_before.max(initial=0))) + 1, 2), np.nan)
+    then[ids_before] = xy_before
+    return 2.0 * xy - then[ids]
+
+
+@numba.njit(cache=True)
+def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
+    """Each previous marker's current position predicted by the affine map of its neighbours' motion
+    (previous -> current positions of the neighbours ``nb`` within reach ``near`` that have a
+    correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
+    usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
+    deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
+    local spacings; the previous position where not usable."""
+    m, k = nb.shape
+    pred = P.copy()
+    ok = np.zeros(m, np.bool_)
+    for i in range(m):
+        n = 0
+        sx = sy = su = sv = 0.0
+        for q in range(k):
+            j = nb[i, q]
+            if near[i, q] and corr[j] >= 0:
+                n += 1
+                sx += P[j, 0] - P[i, 0]
+                sy += P[j, 1] - P[i, 1]
+                su += pts[corr[j], 0] - P[j, 0]
+                sv += pts[corr[j], 1] - P[j, 1]
+        if n < min_fit:
+            continue
+        mx, my, mu, mv = sx / n, sy / n, su / n, sv / n
+        cxx = cxy = cyy = cux = cuy = cvx = cvy = 0.0
+        for q in range(k):
+            j = nb[i, q]
+            if near[i, q] and corr[j] >= 0:
+                x = P[j, 0] - P[i, 0] - mx
+                y = P[j, 1] - P[i, 1] - my
+                u = pts[corr[j], 0] - P[j, 0] - mu
+                v = pts[corr[j], 1] - P[j, 1] - mv
+                cxx += x * x
+                cxy += x * y
+                cyy += y * y
+                cux += u * x
+                cuy += u * y
+                cvx += v * x
+                cvy += v * y
+        tr = (cxx + cyy) / n
+        det = (cxx * cyy - cxy * cxy) / (n * n)
+        lmin = 0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0))
+        s = spread * s_prev[i]
+        if lmin < s * s:
+            continue
+        d = cxx * cyy - cxy * cxy
+        # motion = mean + B (X - mean X), B = [[cux, cuy], [cvx, cvy]] C^-1
+        b00 = (cux * cyy - cuy * cxy) / d
+        b01 = (cuy * cxx - cux * cxy) / d
+        b10 = (cvx * cyy - cvy * cxy) / d
+        b11 = (cvy * cxx - cvx * cxy) / d
+        lim = max_residual * s_prev[i]
+        good = True
+        for q in range(k):
+            j = nb[i, q]
+            if near[i, q] and corr[j] >= 0:
+                x = P[j, 0] - P[i, 0] - mx
+                y = P[j, 1] - P[i, 1] - my
+                ru = pts[corr[j], 0] - P[j, 0] - (mu + b00 * x + b01 * y)
+                rv = pts[corr[j], 1] - P[j, 1] - (mv + b10 * x + b11 * y)
+                if ru * ru + rv * rv > lim * lim:
+                    good = False
+                    break
+        if not good:
+            continue
+        ok[i] = True
+        pred[i, 0] = P[i, 0] + mu - b00 * mx - b01 * my
+        pred[i, 1] = P[i, 1] + mv - b10 * mx - b11 * my
+    return pred, ok
+
+
+def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
+    """Row-wise median of ``v`` over ``mask`` (``default`` for rows without any)."""
+    w = np.where(mask, v, np.nan)
+    out = default.copy()
+    has = mask.any(axis=1)
+    out[has] = np.nanmedian(w[has], axis=1)
+    return out
+
+
+def _accept(pred: np.ndarray, ok: np.ndarray, tree: cKDTree, pts: np.ndarray, s_cur: np.ndarray, s_prev: np.ndarray,
+            gate) -> np.ndarray:
+    """Current blob index per prediction (-1 where refused): nearest blob within the gate, clear of the
+    second-nearest, and mutual (no other prediction nearly as near to that blob). ``gate``: in local
+    spacings, per prediction or one for all. The local spacing is
+    the smaller of the blob's nearest-neighbour distance now and the marker's in the previous frame:
+    two crowded pins detected as one blob have a wider spacing now than either had."""
+    out = np.full(len(pred), -1, np.int64)
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return out
+    d, j = tree.query(pred[idx], k=2)
+    s = np.minimum(s_cur[j[:, 0]], s_prev[idx])
+    good = ((d[:, 0] <= np.broadcast_to(gate, len(pred))[idx] * s) & (d[:, 1] >= F2F_RATIO * d[:, 0])
+            & (d[:, 1] - d[:, 0] >= F2F_MARGIN * s))
+    idx, j1, d1, s = idx[good], j[good, 0], d[good, 0], s[good]
+    if len(idx) == 0:
+        return out
+    if len(idx) >= 2:
+        # mutual: the blob's nearest prediction is this marker's, and the next one is clearly farther
+        pd, pj = cKDTree(pred[idx]).query(pts[j1], k=2)
+        mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
+        idx, j1 = idx[mutual], j1[mutual]
+    u, c = np.unique(j1, return_counts=True)
+    single = ~np.isin(j1, u[c > 1])
+    out[idx[single]] = j1[single]
+    return out
+
+
+def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, expected: np.ndarray | None = None,
+                   design_nbr: np.ndarray | None = None) -> np.ndarray:
+    """Ids of the previous frame's certified markers (``prev_xy`` (M, 2) px, ``prev_ids`` (M,)) that the
+    frame-to-frame map certifies on the current blobs ``pts`` (n, 2); -1 elsewhere (see the module
+    notes). The previous ids are taken as right: what this certifies is only which blob each became.
+    ``expected`` (M, 2): where each marker is expected now (its previous position moved on at its
+    last frame's velocity; NaN where unknown), for the start only; default its previous position.
+    ``design_nbr`` (slots, K): each design slot's immediate design neighbours (-1 padded); a marker
+    with one of them missing from ``prev_ids`` gets the gate :data:`F2F_GATE_ALONE`."""
+    n, m = len(pts), len(prev_ids)
+    out = np.full(n, -1, np.int64)
+    if n < F2F_MIN_FIT + 1 or m < F2F_MIN_FIT + 1:
+        return out
+    P = np.ascontiguousarray(prev_xy, dtype=np.float64)
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    tree = cKDTree(pts)
+    ptree = cKDTree(P)
+    s_cur = _nn_dist(tree, pts)
+    s_prev = _nn_dist(ptree, P)
+    k = min(F2F_NEIGHBOURS, m - 1)
+    dn, nb = ptree.query(P, k=k + 1)
+    dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
+    near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
+    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
+    # a marker whose crowded neighbour merged with it into one blob has a wide spacing itself; its
+    # neighbours' spacing says how crowded the skin is there
+    s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
+
+    gate = np.full(m, F2F_GATE)
+    if design_nbr is not None and len(design_nbr):
+        known = np.zeros(len(design_nbr) + 1, bool)          # index -1 (padding) stays "known"
+        known[prev_ids] = True
+        known[-1] = True
+        gate[~known[design_nbr[prev_ids]].all(axis=1)] = F2F_GATE_ALONE
+
+    # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
+    E = P if expected is None else np.where(np.isfinite(expected), expected, P)
+    corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
+    for _ in range(F2F_ROUNDS):
+        pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL)
+        # where the skin crowds in this very frame, the predictions crowd with it
+        s_pred = np.minimum(s_prev, _nn_dist(cKDTree(pred), pred))
+        new = _accept(pred, ok, tree, pts, s_cur, s_pred, gate)
+        if np.array_equal(new, corr):
+            break
+        corr = new
+    hit = corr >= 0
+    out[corr[hit]] = prev_ids[hit]
+    return out
