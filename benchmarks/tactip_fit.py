@@ -38,7 +38,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from pipeline.design import SensorDesign, design_from_dict, to_dict
 from pipeline.vision.detection import detect_markers
 from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identify_sequence
-from twin.tactip import DomeSkin, TapPose, check_monocular, project_markers, render_frame
+from twin.tactip import TAP_MODEL, DomeSkin, TapPose, check_monocular, project_markers, render_frame
 from benchmarks.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
 __all__ = ["FitContext", "apply_params", "PIN_HEIGHT_RANGE_MM", "FITTED_POSITION_PARAMETERS", "camera_vector",
@@ -122,7 +122,7 @@ class FitContext:
 
     def key(self) -> str:
         return digest(*[f.path for f in self.frames], [f.pose for f in self.frames],
-                      json.dumps(to_dict(self.design), sort_keys=True, default=str))
+                      json.dumps(to_dict(self.design), sort_keys=True, default=str), TAP_MODEL)
 
     # ----- twin taps ----------------------------------------------------------------------
     def _tap_key(self, i: int, params: dict) -> tuple:
