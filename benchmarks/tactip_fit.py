@@ -11,16 +11,20 @@ Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.t
 2. **tilt frame** — the robot's tilt axes relative to the pattern (angle about the sensor axis and the
    handedness of the second tilt): 12 angles x 2 handedness on the 4 most tilted training taps, refined
    by a bounded 1-D search.
-3. **skin** — the membrane's bending/stretching ratio (log-scale bounded search) and the depth offset of
-   the labels (first touch vs the labelled zero), each by a bounded 1-D search on the training taps.
+3. **skin and pins** — the pins' height (the lever that turns the skin's rotation into marker motion), the
+   membrane's bending/stretching ratio (log-scale bounded search) and the depth offset of the labels (first
+   touch vs the labelled zero), each by a bounded 1-D search on the training taps (pin height, bending,
+   offset, pin height again), scored on the markers' displacement from the reference tap.
 4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
    printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
 5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
    the real frames' image statistics (the same detector and :func:`pipeline.vision.tactip_id.frame_stats` on twin
    renders, three fixed-point passes).
 
-The skin, tilt-frame and depth-offset searches score the projected twin pin tips against the identified
-real markers (RMS px over the training frames); the held-out frames are never used here.
+The tilt-frame search scores the projected twin pin tips against the identified real markers (RMS px over
+the training frames); the pin, skin and depth-offset searches score the displacements (each frame minus
+the reference tap, twin against real), which the reference camera's rest-geometry bias does not enter.
+The held-out frames are never used here.
 """
 
 from __future__ import annotations
@@ -34,19 +38,24 @@ from scipy.optimize import least_squares, minimize_scalar
 from pipeline.design import SensorDesign, design_from_dict, to_dict
 from pipeline.vision.detection import detect_markers
 from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identify_sequence
-from twin.tactip import DomeSkin, TapPose, check_monocular, project_markers, render_frame
+from twin.tactip import TAP_MODEL, DomeSkin, TapPose, check_monocular, project_markers, render_frame
 from benchmarks.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
-__all__ = ["FitContext", "apply_params", "camera_vector", "fit_layout", "fit_camera_reference", "fit_camera_all",
+__all__ = ["FitContext", "apply_params", "PIN_HEIGHT_RANGE_MM", "FITTED_POSITION_PARAMETERS", "camera_vector",
+           "fit_layout", "fit_camera_reference", "fit_camera_all",
            "fit_physics", "fit_appearance", "CAM_KEYS", "LAYOUT_SEPARATIONS_MM"]
 
 CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
+#: parameters that place the markers: pin spacing, the camera, tilt frame and mirror, bending, depth offset,
+#: pin height
+FITTED_POSITION_PARAMETERS = 1 + len(CAM_KEYS) + 4 + 1
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
 
 
 def apply_params(design: SensorDesign, cam: dict | None = None, twin: dict | None = None,
                  name: str | None = None) -> SensorDesign:
-    """A copy of a monocular design with camera values (``CAM_KEYS``) and ``[twin]`` values replaced."""
+    """A copy of a monocular design with camera values (``CAM_KEYS``), the dome geometry (``separation_mm``,
+    ``pin_height_mm``) and ``[twin]`` values replaced."""
     raw = to_dict(design)
     if cam:
         c = raw["camera"]
@@ -57,12 +66,14 @@ def apply_params(design: SensorDesign, cam: dict | None = None, twin: dict | Non
                 c["dist"][{"k1": 0, "k2": 1, "k3": 4}[k]] = float(v)
             elif k == "air_gap_mm":
                 raw["optics"]["air_gap_mm"] = float(v)
-            elif k == "separation_mm":
+            elif k in ("separation_mm", "pin_height_mm"):
                 continue
             else:
                 c[k] = float(v)
     if cam and "separation_mm" in cam:
         raw["pattern"]["separation_mm"] = float(cam["separation_mm"])
+    if cam and "pin_height_mm" in cam:
+        raw["pins"]["height_mm"] = float(cam["pin_height_mm"])
     if twin:
         raw["twin"] = {**raw.get("twin", {}), **{k: float(v) for k, v in twin.items()}}
     if name:
@@ -111,7 +122,7 @@ class FitContext:
 
     def key(self) -> str:
         return digest(*[f.path for f in self.frames], [f.pose for f in self.frames],
-                      json.dumps(to_dict(self.design), sort_keys=True, default=str))
+                      json.dumps(to_dict(self.design), sort_keys=True, default=str), TAP_MODEL)
 
     # ----- twin taps ----------------------------------------------------------------------
     def _tap_key(self, i: int, params: dict) -> tuple:
@@ -150,6 +161,25 @@ class FitContext:
             r = uv - self.real_xy[i]
             out.append(r[np.all(np.isfinite(r), axis=1)].ravel())
         return np.concatenate(out)
+
+    def displacement_rms(self, design: SensorDesign, idx, twin: dict, pin_height_mm: float | None = None) -> float:
+        """RMS px of the twin's marker displacements from the reference tap against the real ones: the rest
+        geometry and the camera's bias cancel to first order, what is left is how the markers move. With
+        ``pin_height_mm`` the pin tips are moved along their pins to that height (the skin solve does not
+        depend on it, so the taps are reused)."""
+        dh = 0.0 if pin_height_mm is None else pin_height_mm - self.design.pins.height_mm
+
+        def uv(i):
+            p, ax = self.tap(i, twin)
+            return project_markers(design, p + dh * ax)
+
+        u0, r0 = uv(self.ref), self.real_xy[self.ref]
+        out = []
+        for i in idx:
+            e = (uv(i) - u0) - (self.real_xy[i] - r0)
+            out.append(e[np.all(np.isfinite(e), axis=1)])
+        e = np.concatenate(out)
+        return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("inf")
 
     def rms(self, design: SensorDesign, idx, twin: dict) -> float:
         r = self.residuals(design, idx, twin)
@@ -329,22 +359,47 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     r = minimize_scalar(f_psi, bounds=(psi0 - 30, psi0 + 30), method="bounded", options={"xatol": 1.0, "maxiter": 12})
     twin["tilt_frame_deg"] = float((r.x + 180) % 360 - 180)
     bar.update(1)
-    f_b = lambda lv: ctx.rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
+    # the lever and the skin are fitted on how the markers move (displacement from the reference tap), not
+    # where they are: the reference camera was fitted with the nominal pins, a rest-geometry bias the
+    # positions would carry into both
+    f_h = lambda h: ctx.displacement_rms(design, search, twin, h)  # noqa: E731
+    pin_height = _fit_pin_height(ctx, f_h)
+    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv}, pin_height)  # noqa: E731
     r = minimize_scalar(f_b, bounds=(-2.5, 1.5), method="bounded", options={"xatol": 0.05, "maxiter": 14})
     twin["bending_ratio"] = float(10 ** r.x)
     bar.update(1)
-    f_d = lambda v: ctx.rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
+    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v}, pin_height)  # noqa: E731
     r = minimize_scalar(f_d, bounds=(-1.5, 1.5), method="bounded", options={"xatol": 0.02, "maxiter": 12})
     twin["depth_offset_mm"] = float(r.x)
     bar.update(1)
-    n_obs = len(ctx.residuals(design, search, twin)) // 2
-    f0 = ctx.rms(design, search, twin)
+    f_h = lambda h: ctx.displacement_rms(design, search, twin, h)  # noqa: E731
+    pin_height = _fit_pin_height(ctx, f_h)
+    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv}, pin_height)  # noqa: E731
+    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v}, pin_height)  # noqa: E731
+    n_obs = sum(int(np.all(np.isfinite(ctx.real_xy[i]), axis=1).sum()) for i in search)
+    f0, p0 = f_h(pin_height), ctx.rms(design, search, twin)
     sd = {"log10_bending_ratio": _curvature_sd(f_b, math.log10(twin["bending_ratio"]), 0.15, f0, n_obs),
           "depth_offset_mm": _curvature_sd(f_d, twin["depth_offset_mm"], 0.1, f0, n_obs),
-          "tilt_frame_deg": _curvature_sd(f_psi, twin["tilt_frame_deg"], 3.0, f0, n_obs)}
+          "tilt_frame_deg": _curvature_sd(f_psi, twin["tilt_frame_deg"], 3.0, p0, n_obs),
+          "pin_height_mm": _curvature_sd(f_h, pin_height, 0.1, f0, n_obs)}
     bar.update(1)
-    return twin, {"grid": [[float(a), float(b), float(c)] for a, b, c in grid], "rms_px_search": f0, "sd": sd,
+    return twin, {"grid": [[float(a), float(b), float(c)] for a, b, c in grid], "rms_px_search": p0,
+                  "displacement_rms_px_search": f0, "sd": sd, "pin_height_mm": pin_height,
                   "search_frames": [ctx.frames[i].path.name for i in search]}
+
+
+#: the pin's lever (pin height, mm) is searched in this range: the marker (pin tip, ``markers.thickness_mm``
+#: long) must stay on the pin, and the gel (``optics.gel_thickness_mm``) bounds it from inside
+PIN_HEIGHT_RANGE_MM = (0.35, 4.0)
+
+
+def _fit_pin_height(ctx: FitContext, f_h) -> float:
+    """The pin height (the lever that turns the skin's rotation into marker motion) by a bounded 1-D search;
+    the taps are shared by every candidate, so the search costs projections only."""
+    lo = max(PIN_HEIGHT_RANGE_MM[0], ctx.design.markers.thickness_mm + 0.05)
+    r = minimize_scalar(f_h, bounds=(lo, PIN_HEIGHT_RANGE_MM[1]), method="bounded",
+                        options={"xatol": 0.02, "maxiter": 20})
+    return float(r.x)
 
 
 # ----- stage 5: appearance -----------------------------------------------------------------

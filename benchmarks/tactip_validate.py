@@ -27,7 +27,7 @@ from pipeline.design import load_design
 from pipeline.vision.detection import detect_markers
 from pipeline.vision.tactip_id import frame_stats, identify_by_reference
 from benchmarks.executor import make_engine, run_cells
-from benchmarks.tactip_fit import CAM_KEYS, FitContext, identify_chain
+from benchmarks.tactip_fit import FITTED_POSITION_PARAMETERS, FitContext, identify_chain
 from twin.tactip import project_markers, render_frame
 from benchmarks.tapdata import TapDataError
 
@@ -131,7 +131,7 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
     cmp = _compare_frames(ctx, twin, twin_xy, ref_twin, ref_real, base, out)
     held, held_common = _held_out_rms(cmp)
     stats = _image_stats(cmp.per_frame)
-    n_params = {"twin": 1 + len(CAM_KEYS) + 4, "static": 2 * design.marker_count,
+    n_params = {"twin": FITTED_POSITION_PARAMETERS, "static": 2 * design.marker_count,
                 "ridge": 2 * design.marker_count * ridge_features(poses[:1]).shape[1]}
     summary = {"design": design.name, "frames": len(ctx.frames), "train": len(ctx.train), "held_out": len(ctx.held),
                "held_out_frames": [ctx.frames[i].path.name for i in ctx.held],
