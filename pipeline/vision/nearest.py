@@ -60,6 +60,27 @@ def design_order(xy: np.ndarray, width: int = DESIGN_ORDER_WIDTH) -> np.ndarray:
     return np.ascontiguousarray(nb)
 
 
+@numba.njit(inline="always")
+def _keep(out_idx, out_d2, n, k, i, d):
+    """Offer point ``i`` at squared distance ``d`` to the sorted prefix ``out_idx[:n]`` / ``out_d2[:n]`` of at most
+    ``k`` entries; returns the new length. It enters only when strictly nearer than the k-th kept, so of tied
+    points offered in index order the lower index stays first."""
+    if n == k:
+        if not d < out_d2[k - 1]:
+            return n
+        j = k - 1
+    else:
+        j = n
+        n += 1
+    while j > 0 and out_d2[j - 1] > d:
+        out_idx[j] = out_idx[j - 1]
+        out_d2[j] = out_d2[j - 1]
+        j -= 1
+    out_idx[j] = i
+    out_d2[j] = d
+    return n
+
+
 @numba.njit(cache=True)
 def nearest(pts, x, y, k, out_idx, out_d2):
     """The ``k`` (``<= len(pts)``) points of ``pts`` nearest to ``(x, y)``, in (squared distance, index)
@@ -70,20 +91,7 @@ def nearest(pts, x, y, k, out_idx, out_d2):
     for i in range(len(pts)):
         dx = pts[i, 0] - x
         dy = pts[i, 1] - y
-        d = dx * dx + dy * dy
-        if n == k:
-            if not d < out_d2[k - 1]:
-                continue
-            j = k - 1
-        else:
-            j = n
-            n += 1
-        while j > 0 and out_d2[j - 1] > d:
-            out_idx[j] = out_idx[j - 1]
-            out_d2[j] = out_d2[j - 1]
-            j -= 1
-        out_idx[j] = i
-        out_d2[j] = d
+        n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
 
 
 @numba.njit(cache=True)
@@ -114,18 +122,5 @@ def nearest_members(xy, order, member, s, k, skip_self, out):
             continue
         dx = xy[i, 0] - x
         dy = xy[i, 1] - y
-        d = dx * dx + dy * dy
-        if n == k:
-            if not d < d2[k - 1]:
-                continue
-            j = k - 1
-        else:
-            j = n
-            n += 1
-        while j > 0 and d2[j - 1] > d:
-            out[j] = out[j - 1]
-            d2[j] = d2[j - 1]
-            j -= 1
-        out[j] = i
-        d2[j] = d
+        n = _keep(out, d2, n, k, i, dx * dx + dy * dy)
     return n
