@@ -178,6 +178,35 @@ def test_unstable_face_contact_falls_back_to_vertex_contact_and_is_flagged(monke
     assert not truth.validity["valid"] and truth.validity["penetration_max_mm"] > 0.3
 
 
+@pytest.mark.physics
+def test_a_face_contact_solve_that_diverges_into_a_mujoco_error_falls_back(monkeypatch):
+    """A failed face-contact solve can diverge before its warning is checked: the vertices fly apart and MuJoCo
+    raises (its collision arena overflows; measured on a 2π/5 sine pressed 5 mm on a rounded-edge mesh). That is
+    the same failed solve: the motion is re-run from its start with vertex contacts only and flagged."""
+    import mujoco
+
+    from pipeline.design import load_design
+    from twin import robot
+    from twin.indenters import make_indenter
+    from twin.physics import MeshSpec, SkinSim
+
+    real = robot._execute
+
+    def diverging(sim, motion, progress, direct, *, stop_if_unstable=None):
+        if stop_if_unstable is not None:                       # the face-contact attempt
+            sim.set_pose(*motion.waypoints[-1].pose)
+            sim.step()
+            raise mujoco.FatalError("mj_stackAlloc: out of memory, stack overflow at mj_collideTree")
+        return real(sim, motion, progress, direct)
+
+    monkeypatch.setattr(robot, "_execute", diverging)
+    sim = SkinSim(load_design("hexagon127"), make_indenter("gaussian", h_mm=5, sigma2_mm2=10),
+                  mesh=MeshSpec(face_contact=True))
+    (_, stats, truth), = robot.execute(sim, robot.press_motion(1.0))
+    assert not sim.face_contact and "solve failed" in sim.face_contact_fallback
+    assert stats.converged and sim.warnings() == {} and truth.validity["contact_force_n"] > 0
+
+
 def test_letter_surface_spheres_stay_on_the_letter_and_cover_its_edges():
     """The face-contact spheres of a letter (vertical 3 mm walls, flat top): none stands more than the edge
     spheres' 0.021 mm (r - sqrt(r^2 - cover^2)) proud of the true surface over the letter's top, and every
