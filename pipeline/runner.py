@@ -411,13 +411,13 @@ def compile_kernels() -> float:
     every kernel of the common path; returns the seconds it took. The first call after an install
     compiles (~30-35 s on the 2-core reference machine), later ones load the cached machine code in
     well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
-    from pipeline.design import load_design
+    from pipeline.design import DEFAULT_DESIGN, load_design
     from pipeline.vision.detection import detect_markers
     from pipeline.vision.dtrc import code_rings
     from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
     t0 = time.perf_counter()
-    design = load_design("hexagon127")
+    design = load_design(DEFAULT_DESIGN)
     calib = nominal_calibration(design)
     rec = Reconstructor(design, calib)
     for depth in (0.0, 2.0):

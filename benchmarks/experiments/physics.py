@@ -140,7 +140,7 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
 )
 def run(ctx: Context) -> Result:
     """Sphere pressed into the skin module: force-depth vs the bonded-layer Hertz solution, symmetry, convergence."""
-    design = ctx.design("hexagon127")
+    design = ctx.design()
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(1.0, 3.0))]
     resolutions = ctx.param("resolutions", RESOLUTIONS, quick=RESOLUTIONS[1:])   # quick: production vs finest
     conv_depth = float(ctx.param("convergence_depth", 2.0))

@@ -75,7 +75,7 @@ def run(ctx: Context) -> Result:
     """Skin-less marker-board press 0–8 mm: fitted n vs the twin's optics, linear vs exact depth error."""
     from pipeline.geometry.refraction import fit_refractive_index
 
-    setup = ctx.sensor_setup(ctx.design("hexagon127"))
+    setup = ctx.sensor_setup(ctx.design())
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(0.0, 2.0, 4.0, 6.0, 8.0))]
     trials = int(ctx.param("trials", TRIALS, quick=2))
     if depths[0] != 0.0:
