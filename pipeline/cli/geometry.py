@@ -160,7 +160,8 @@ def _calibrate_refraction(args: argparse.Namespace) -> int:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     from pipeline.design import load_design
-    from pipeline.runner import Reconstructor, reconstruct
+    from pipeline.batch import reconstruct
+    from pipeline.runner import Reconstructor
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)
