@@ -2,7 +2,9 @@
 that walks the registry and checks every experiment's invariants (dm_control ``suite_test`` style).
 
 Cheap experiments (tag ``cheap``) run for real with tiny settings; the expensive ones are exercised
-by ``stereotactip bench all --quick --check`` in CI (``make test``).
+by ``stereotactip bench all --quick --check`` in CI (``make test``). Over ~400 lines on purpose: the
+framework's pieces (records, gate, report, README blocks, sweep, CLI) share the toy experiment and its
+fixtures defined at the top.
 """
 
 from __future__ import annotations

@@ -17,6 +17,9 @@ A rigid sphere (radius ``R``) is pressed 0.25-3 mm into the skin module on the s
   conformity (the frame's face-level penetration, :mod:`twin.validity`).
 
 Materials: E and ν from the design file (``sim_assets/designs``; sources in ``twin/materials.py``).
+
+One experiment module (just over ~400 lines) on purpose: the cases, the reference solution, the scoring,
+findings and figure of one comparison, in the order :func:`run` calls them.
 """
 
 from __future__ import annotations
