@@ -1,6 +1,8 @@
 """MuJoCo skin model: compiles for every design, rest markers exact, contact fidelity, pins.
 
-Each test states its tolerance; the model is run at the resolutions the twin uses.
+Each test states its tolerance; the model is run at the resolutions the twin uses. Over ~400 lines on
+purpose: one file for everything that pins the skin model's physics (each test builds its own sim, so
+splitting the file would only split the list).
 """
 
 import numpy as np
