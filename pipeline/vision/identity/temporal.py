@@ -14,7 +14,13 @@ Procedure (:func:`frame_to_frame`): the correspondences start from mutual neares
 frame, where known - and a current blob) within :data:`F2F_BOOTSTRAP` local spacings that pass the
 ratio test both ways; then every previous marker is predicted from its :data:`F2F_NEIGHBOURS`
 nearest previous markers that currently have a correspondence, and the correspondences are replaced
-by those that pass the tests below; repeated until nothing changes. A marker's correspondence is accepted only when
+by those that pass the tests below; repeated until nothing changes. Where the marker and its
+neighbours were also certified in the frame before (their last velocity is known), the fitted
+motion is their departure from that velocity, added to where the marker's own velocity puts it: as
+pins crowd into a crest, the increment grows frame by frame and is not affine over two spacings,
+while its change from one frame to the next still is (on the twin's narrow-sine presses, the fit's
+residual test then passes where the increment's refused); elsewhere the increment itself is fitted.
+A marker's correspondence is accepted only when
 
 * at least :data:`F2F_MIN_FIT` of its neighbours have one, spread in two directions, and the affine
   map fits them all to within :data:`F2F_FIT_RESIDUAL` local spacings (one neighbour followed to the
@@ -26,6 +32,10 @@ by those that pass the tests below; repeated until nothing changes. A marker's c
 
 A blob that moved more than the gate from where its neighbours' motion puts it loses its id; a
 missing blob leaves its marker unmatched; a spurious blob next to a marker makes it ambiguous.
+
+A marker lost before the previous frame (its blob merged with a crowded neighbour's for a frame, or
+its neighbourhood not fitted) is re-acquired by :func:`reacquire` under the same tests, from its
+last certified position and its neighbours' motion since then.
 """
 
 from __future__ import annotations
@@ -94,13 +104,15 @@ def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, i
 
 
 @numba.njit(cache=True)
-def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
+def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     """Each previous marker's current position predicted by the affine map of its neighbours' motion
     (previous -> current positions of the neighbours ``nb`` within reach ``near`` that have a
     correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
     usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
     deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
-    local spacings; the previous position where not usable."""
+    local spacings; the previous position where not usable. ``B`` (M, 2): the base each motion is
+    taken from (``P``: the frame's increment; the positions expected at the last velocity: the
+    change of the increment), the prediction being the marker's base moved by the fitted motion."""
     m, k = nb.shape
     pred = P.copy()
     ok = np.zeros(m, np.bool_)
@@ -113,8 +125,8 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
                 n += 1
                 sx += P[j, 0] - P[i, 0]
                 sy += P[j, 1] - P[i, 1]
-                su += pts[corr[j], 0] - P[j, 0]
-                sv += pts[corr[j], 1] - P[j, 1]
+                su += pts[corr[j], 0] - B[j, 0]
+                sv += pts[corr[j], 1] - B[j, 1]
         if n < min_fit:
             continue
         mx, my, mu, mv = sx / n, sy / n, su / n, sv / n
@@ -124,8 +136,8 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
             if near[i, q] and corr[j] >= 0:
                 x = P[j, 0] - P[i, 0] - mx
                 y = P[j, 1] - P[i, 1] - my
-                u = pts[corr[j], 0] - P[j, 0] - mu
-                v = pts[corr[j], 1] - P[j, 1] - mv
+                u = pts[corr[j], 0] - B[j, 0] - mu
+                v = pts[corr[j], 1] - B[j, 1] - mv
                 cxx += x * x
                 cxy += x * y
                 cyy += y * y
@@ -152,16 +164,16 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
             if near[i, q] and corr[j] >= 0:
                 x = P[j, 0] - P[i, 0] - mx
                 y = P[j, 1] - P[i, 1] - my
-                ru = pts[corr[j], 0] - P[j, 0] - (mu + b00 * x + b01 * y)
-                rv = pts[corr[j], 1] - P[j, 1] - (mv + b10 * x + b11 * y)
+                ru = pts[corr[j], 0] - B[j, 0] - (mu + b00 * x + b01 * y)
+                rv = pts[corr[j], 1] - B[j, 1] - (mv + b10 * x + b11 * y)
                 if ru * ru + rv * rv > lim * lim:
                     good = False
                     break
         if not good:
             continue
         ok[i] = True
-        pred[i, 0] = P[i, 0] + mu - b00 * mx - b01 * my
-        pred[i, 1] = P[i, 1] + mv - b10 * mx - b11 * my
+        pred[i, 0] = B[i, 0] + mu - b00 * mx - b01 * my
+        pred[i, 1] = B[i, 1] + mv - b10 * mx - b11 * my
     return pred, ok
 
 
@@ -241,8 +253,19 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
     corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
+    moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL)
+        pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+        if moving is not None and moving.any():
+            # where the increment itself is not affine over the neighbourhood (pins crowding into
+            # the crests faster frame by frame), its change from the last frame's still is: the
+            # neighbours' departures from their last velocity, fitted the same way, move the
+            # marker on from where its own last velocity puts it
+            pv, okv = _predict(P, pts, nb, near, np.where(moving, corr, -1), s_prev, F2F_MIN_FIT, F2F_SPREAD,
+                               F2F_FIT_RESIDUAL, E)
+            okv &= moving
+            pred = np.where(okv[:, None], pv, pred)
+            ok = ok | okv
         # where the skin crowds in this very frame, the predictions crowd with it
         s_pred = np.minimum(s_prev, _nn_dist(cKDTree(pred), pred))
         new = _accept(pred, ok, tree, pts, s_cur, s_pred, gate)
@@ -272,8 +295,8 @@ def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
     near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
     nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
     s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
-    pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL)
-    rough, rough_ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf)
+    pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+    rough, rough_ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
     return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok
 
 
