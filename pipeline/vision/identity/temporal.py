@@ -110,12 +110,14 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
     usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
     deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
-    local spacings; the previous position where not usable. ``B`` (M, 2): the base each motion is
+    local spacings; the previous position where not usable; and the fitted map's Jacobian (M, 4)
+    (previous -> current position, row-major; zero where not usable). ``B`` (M, 2): the base each motion is
     taken from (``P``: the frame's increment; the positions expected at the last velocity: the
     change of the increment), the prediction being the marker's base moved by the fitted motion."""
     m, k = nb.shape
     pred = P.copy()
     ok = np.zeros(m, np.bool_)
+    jac = np.zeros((m, 4))
     for i in range(m):
         n = 0
         sx = sy = su = sv = 0.0
@@ -174,7 +176,11 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
         ok[i] = True
         pred[i, 0] = B[i, 0] + mu - b00 * mx - b01 * my
         pred[i, 1] = B[i, 1] + mv - b10 * mx - b11 * my
-    return pred, ok
+        jac[i, 0] = 1.0 + b00
+        jac[i, 1] = b01
+        jac[i, 2] = b10
+        jac[i, 3] = 1.0 + b11
+    return pred, ok, jac
 
 
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
@@ -255,13 +261,13 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
     moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+        pred, ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
         if moving is not None and moving.any():
             # where the increment itself is not affine over the neighbourhood (pins crowding into
             # the crests faster frame by frame), its change from the last frame's still is: the
             # neighbours' departures from their last velocity, fitted the same way, move the
             # marker on from where its own last velocity puts it
-            pv, okv = _predict(P, pts, nb, near, np.where(moving, corr, -1), s_prev, F2F_MIN_FIT, F2F_SPREAD,
+            pv, okv, _ = _predict(P, pts, nb, near, np.where(moving, corr, -1), s_prev, F2F_MIN_FIT, F2F_SPREAD,
                                F2F_FIT_RESIDUAL, E)
             okv &= moving
             pred = np.where(okv[:, None], pv, pred)
@@ -295,9 +301,9 @@ def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
     near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
     nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
     s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
-    pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
-    rough, rough_ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
-    return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok
+    pred, ok, jac = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+    rough, rough_ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
+    return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok, jac
 
 
 def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray | None = None) -> np.ndarray:
@@ -340,9 +346,9 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
             blob_of[:] = -1
             blob_of[cur[cur >= 0]] = np.flatnonzero(cur >= 0)
             corr = blob_of[hid]
-            pred, ok, s_prev, rough, rough_ok = _fit_frame(P, corr, pts)
+            pred, ok, s_prev, rough, rough_ok, jac = _fit_frame(P, corr, pts)
             ok &= lost
-            rivals = rough[lost & rough_ok & ~ok]
+            rivals = [rough[lost & rough_ok & ~ok]]
             if not ok.any():
                 break
             gate = np.full(len(hid), F2F_GATE)
@@ -351,11 +357,23 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                 known[cur[cur >= 0]] = True
                 known[-1] = True                      # padding
                 gate[~known[design_nbr[hid]].all(axis=1)] = F2F_GATE_ALONE
-                # every neighbour not certified now must have a (rough) prediction to be tested as a rival
-                # for the blob: one lost before this frame could be merged into it unseen
-                told = known.copy()
-                told[hid[rough_ok]] = True
-                ok &= told[design_nbr[hid]].all(axis=1)
+                # a design neighbour not certified now may have merged with the marker into the blob:
+                # it is tested as a rival, at its own rough prediction or else where the marker's map
+                # takes its last position; one not certified in this frame either has no position
+                # to test, and the marker is not re-acquired
+                row = np.full(len(known), -1, np.int64)
+                row[hid] = np.arange(len(hid))
+                for i in np.flatnonzero(ok):
+                    for n in design_nbr[hid[i]]:
+                        if n < 0 or known[n]:
+                            continue
+                        r = row[n]
+                        if r < 0:
+                            ok[i] = False
+                            break
+                        if not rough_ok[r]:
+                            rivals.append((pred[i] + jac[i].reshape(2, 2) @ (P[r] - P[i]))[None])
+            rivals = np.vstack(rivals)
             got = _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, cur >= 0, rivals)
             hit = got >= 0
             if not hit.any():
