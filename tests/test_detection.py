@@ -301,3 +301,4 @@ def test_compiled_fast_paths_equal_their_in_order_definitions():
         u, inv = np.unique(a, return_inverse=True)
         u2, inv2 = photometry._unique_inverse(a)
         assert u2.tobytes() == u.tobytes() and np.array_equal(inv2, inv)
+

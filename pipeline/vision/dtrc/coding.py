@@ -72,8 +72,8 @@ class RingCoding:
         return int(np.sum(self.ids >= 0))
 
 
-def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> RingCoding:
+def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray, np.ndarray] | None = None,
+               history=None) -> RingCoding:
     """DTRC ring coding of one view.
 
     Parameters
@@ -88,6 +88,10 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         their ids where the frame-to-frame map certifies which blob each became
         (:func:`pipeline.vision.identity.frame_to_frame`; the frame before the previous one, when
         given, sets where each marker is expected at its last velocity).
+    history : sequence of (xy_px (K, 2), ids (K,)), optional
+        The identified markers of the frames before the previous one, most recent first: a marker lost
+        since is re-acquired when its neighbours' motion from its last certified position certifies a
+        free blob (:func:`pipeline.vision.identity.temporal.reacquire`). Used only with ``previous``.
 
     Returns
     -------
@@ -170,7 +174,9 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
     if previous is not None:
         previous = tuple(np.asarray(a, np.float64).reshape(-1, 2) if k % 2 == 0 else np.asarray(a, np.int64)
                          for k, a in enumerate(previous[:4]))
-    ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous)
+    if history is not None:
+        history = [(np.asarray(xy, np.float64).reshape(-1, 2), np.asarray(i, np.int64)) for xy, i in history]
+    ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous, history)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
                       tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched),

@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.consistency import _blob_of
-from pipeline.vision.identity.temporal import expected_positions
+from pipeline.vision.identity.temporal import expected_positions, reacquire
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
                                       contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
@@ -33,14 +33,15 @@ SEED_BELOW = 0.9
 
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
-                 msgs: list[str], previous=None) -> tuple[np.ndarray, np.ndarray]:
+                 msgs: list[str], previous=None, history=None) -> tuple[np.ndarray, np.ndarray]:
     """The certainty rule (:mod:`pipeline.vision.identity`) applied to the ring-coding proposal and, when
     ``previous`` (the previous frame's certain markers: xy_px (M, 2), ids (M,)) is given and the
     proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
     by growth; when that leaves markers unidentified, also to the placements of a lattice
     registration independent of ring peeling. Markers still unidentified are then followed from the
-    previous frame (:func:`pipeline.vision.identity.follow`). Returns (certified id per blob, reason code
-    per design id)."""
+    previous frame (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are
+    re-acquired from the earlier frames ``history`` (:func:`pipeline.vision.identity.temporal.reacquire`).
+    Returns (certified id per blob, reason code per design id)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)
     reason = np.full(n_slots, R_NO_BLOB, np.int64)
@@ -96,6 +97,11 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     followed = None
     if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
         ids, reason, followed = _with_frame_to_frame(previous, pts, ids, rule_ids, reason, lat, msgs)
+        if history and followed is None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
+            back = reacquire(history, ids, pts, lat.nbr)
+            if (back >= 0).any():
+                ids = np.where(back >= 0, back, ids)
+                msgs.append(f"re-acquired {int((back >= 0).sum())} marker(s) lost in earlier frames")
     reason[ids[ids >= 0]] = 0
     n_certified = int((ids >= 0).sum())
     if defects or n_certified < n_slots:

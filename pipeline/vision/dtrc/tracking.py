@@ -14,6 +14,7 @@ from pipeline.design import SensorDesign
 from pipeline.types import Blobs, MarkerMatches
 from pipeline.vision.dtrc.coding import RingCoding, code_rings
 from pipeline.vision.dtrc.ring_codes import _marker_count
+from pipeline.vision.identity.temporal import REACQUIRE_FRAMES
 
 
 # ----- stereo matching and tracking ---------------------------------------------------------
@@ -74,14 +75,19 @@ class DTRCTracker:
         self.last_codings: tuple[RingCoding, RingCoding] | None = None
         self._previous: list | None = None
         self._before: list | None = None
+        self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
         prev = self._previous if self.temporal else None
+        hist = [None, None]
         if prev is not None:
             prev = [(xy, i, *before) for (xy, i), before in zip(prev, self._before)]
-        lc = code_rings(left, self.design, previous=None if prev is None else prev[0])
-        rc = code_rings(right, self.design, previous=None if prev is None else prev[1])
+            hist = [[frame[v] for frame in [self._before, *self._older]] for v in (0, 1)]
+        lc = code_rings(left, self.design, previous=None if prev is None else prev[0], history=hist[0])
+        rc = code_rings(right, self.design, previous=None if prev is None else prev[1], history=hist[1])
         self.last_codings = (lc, rc)
+        if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
+            self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
         self._before = self._previous if self._previous is not None else [(np.empty((0, 2)), np.empty(0, np.int64))] * 2
         self._previous = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         return _pair(left, right, lc, rc, _marker_count(self.design))
@@ -100,6 +106,7 @@ class DTRCTracker:
         self.last_codings = None
         self._previous = None
         self._before = None
+        self._older = []
 
 
 class NearestNeighbourTracker:

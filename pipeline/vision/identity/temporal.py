@@ -14,7 +14,13 @@ Procedure (:func:`frame_to_frame`): the correspondences start from mutual neares
 frame, where known - and a current blob) within :data:`F2F_BOOTSTRAP` local spacings that pass the
 ratio test both ways; then every previous marker is predicted from its :data:`F2F_NEIGHBOURS`
 nearest previous markers that currently have a correspondence, and the correspondences are replaced
-by those that pass the tests below; repeated until nothing changes. A marker's correspondence is accepted only when
+by those that pass the tests below; repeated until nothing changes. Where the marker and its
+neighbours were also certified in the frame before (their last velocity is known), the fitted
+motion is their departure from that velocity, added to where the marker's own velocity puts it: as
+pins crowd into a crest, the increment grows frame by frame and is not affine over two spacings,
+while its change from one frame to the next still is (on the twin's narrow-sine presses, the fit's
+residual test then passes where the increment's refused); elsewhere the increment itself is fitted.
+A marker's correspondence is accepted only when
 
 * at least :data:`F2F_MIN_FIT` of its neighbours have one, spread in two directions, and the affine
   map fits them all to within :data:`F2F_FIT_RESIDUAL` local spacings (one neighbour followed to the
@@ -26,6 +32,10 @@ by those that pass the tests below; repeated until nothing changes. A marker's c
 
 A blob that moved more than the gate from where its neighbours' motion puts it loses its id; a
 missing blob leaves its marker unmatched; a spurious blob next to a marker makes it ambiguous.
+
+A marker lost before the previous frame (its blob merged with a crowded neighbour's for a frame, or
+its neighbourhood not fitted) is re-acquired by :func:`reacquire` under the same tests, from its
+last certified position and its neighbours' motion since then.
 """
 
 from __future__ import annotations
@@ -94,13 +104,16 @@ def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, i
 
 
 @numba.njit(cache=True)
-def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
+def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     """Each previous marker's current position predicted by the affine map of its neighbours' motion
     (previous -> current positions of the neighbours ``nb`` within reach ``near`` that have a
     correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
     usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
     deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
-    local spacings; the previous position where not usable.
+    local spacings; the previous position where not usable; and the fitted map's Jacobian (M, 4)
+    (previous -> current position, row-major; zero where not usable). ``B`` (M, 2): the base each motion is
+    taken from (``P``: the frame's increment; the positions expected at the last velocity: the
+    change of the increment), the prediction being the marker's base moved by the fitted motion.
 
     Not the sums of :mod:`pipeline.vision.identity.fits` on purpose: those are one-pass raw sums about an
     origin, kept so that every leave-one-out fit of a design neighbourhood is one subtraction and their
@@ -112,6 +125,7 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
     m, k = nb.shape
     pred = P.copy()
     ok = np.zeros(m, np.bool_)
+    jac = np.zeros((m, 4))
     for i in range(m):
         n = 0
         sx = sy = su = sv = 0.0
@@ -121,8 +135,8 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
                 n += 1
                 sx += P[j, 0] - P[i, 0]
                 sy += P[j, 1] - P[i, 1]
-                su += pts[corr[j], 0] - P[j, 0]
-                sv += pts[corr[j], 1] - P[j, 1]
+                su += pts[corr[j], 0] - B[j, 0]
+                sv += pts[corr[j], 1] - B[j, 1]
         if n < min_fit:
             continue
         mx, my, mu, mv = sx / n, sy / n, su / n, sv / n
@@ -132,8 +146,8 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
             if near[i, q] and corr[j] >= 0:
                 x = P[j, 0] - P[i, 0] - mx
                 y = P[j, 1] - P[i, 1] - my
-                u = pts[corr[j], 0] - P[j, 0] - mu
-                v = pts[corr[j], 1] - P[j, 1] - mv
+                u = pts[corr[j], 0] - B[j, 0] - mu
+                v = pts[corr[j], 1] - B[j, 1] - mv
                 cxx += x * x
                 cxy += x * y
                 cyy += y * y
@@ -160,17 +174,21 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
             if near[i, q] and corr[j] >= 0:
                 x = P[j, 0] - P[i, 0] - mx
                 y = P[j, 1] - P[i, 1] - my
-                ru = pts[corr[j], 0] - P[j, 0] - (mu + b00 * x + b01 * y)
-                rv = pts[corr[j], 1] - P[j, 1] - (mv + b10 * x + b11 * y)
+                ru = pts[corr[j], 0] - B[j, 0] - (mu + b00 * x + b01 * y)
+                rv = pts[corr[j], 1] - B[j, 1] - (mv + b10 * x + b11 * y)
                 if ru * ru + rv * rv > lim * lim:
                     good = False
                     break
         if not good:
             continue
         ok[i] = True
-        pred[i, 0] = P[i, 0] + mu - b00 * mx - b01 * my
-        pred[i, 1] = P[i, 1] + mv - b10 * mx - b11 * my
-    return pred, ok
+        pred[i, 0] = B[i, 0] + mu - b00 * mx - b01 * my
+        pred[i, 1] = B[i, 1] + mv - b10 * mx - b11 * my
+        jac[i, 0] = 1.0 + b00
+        jac[i, 1] = b01
+        jac[i, 2] = b10
+        jac[i, 3] = 1.0 + b11
+    return pred, ok, jac
 
 
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
@@ -249,8 +267,19 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
     corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
+    moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL)
+        pred, ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+        if moving is not None and moving.any():
+            # where the increment itself is not affine over the neighbourhood (pins crowding into
+            # the crests faster frame by frame), its change from the last frame's still is: the
+            # neighbours' departures from their last velocity, fitted the same way, move the
+            # marker on from where its own last velocity puts it
+            pv, okv, _ = _predict(P, pts, nb, near, np.where(moving, corr, -1), s_prev, F2F_MIN_FIT, F2F_SPREAD,
+                               F2F_FIT_RESIDUAL, E)
+            okv &= moving
+            pred = np.where(okv[:, None], pv, pred)
+            ok = ok | okv
         # where the skin crowds in this very frame, the predictions crowd with it
         s_pred = np.minimum(s_prev, _nn_dist(cKDTree(pred), pred))
         new = _accept(pred, ok, tree, pts, s_cur, s_pred, gate)
@@ -259,4 +288,134 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
         corr = new
     hit = corr >= 0
     out[corr[hit]] = prev_ids[hit]
+    return out
+
+
+#: Earlier frames a marker lost from the previous frame may be re-acquired from: its last certified
+#: position there and its neighbours' motion since (a lost marker is one the detector merged with a
+#: crowded neighbour, or whose neighbourhood the frame-to-frame map could not fit, for a frame or two).
+REACQUIRE_FRAMES = 3
+
+
+def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
+    """The frame-to-frame fit's neighbour structure for markers at ``P`` (one earlier frame), and each
+    one's current prediction from the neighbours that have a current blob ``corr`` (see :func:`_predict`)."""
+    m = len(P)
+    ptree = cKDTree(P)
+    s_prev = _nn_dist(ptree, P)
+    k = min(F2F_NEIGHBOURS, m - 1)
+    dn, nb = ptree.query(P, k=k + 1)
+    dn, nb = dn[:, 1:], nb[:, 1:]
+    near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
+    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
+    s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
+    pred, ok, jac = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+    rough, rough_ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
+    return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok, jac
+
+
+def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray | None = None) -> np.ndarray:
+    """Ids of markers lost before the previous frame that the frame-to-frame map re-acquires on the
+    free blobs of the current frame (blobs without an id in ``ids`` (n,)); -1 elsewhere.
+
+    ``history``: the certified markers (xy_px (M, 2), ids (M,)) of the frames before the previous one,
+    most recent first (:data:`REACQUIRE_FRAMES` are used). A marker certified in one of them but in
+    none since (nor now) is predicted from its last certified position moved by the affine map of its
+    neighbours' motion from that frame to now (neighbours certified in both, the marker excluded),
+    under the tests of :func:`frame_to_frame` unchanged: at least :data:`F2F_MIN_FIT` neighbours
+    spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL` local spacings; the nearest
+    blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design neighbour is not
+    certified now, so that it may share the blob) of the prediction, :data:`F2F_RATIO` times and
+    :data:`F2F_MARGIN` spacings nearer than the second-nearest blob (identified or not); and mutual: no
+    other re-acquired prediction and no identified blob nearly as near to that blob. The blob must
+    be free: a blob that carries another marker's id is never taken, even when it is the nearest."""
+    n = len(pts)
+    out = np.full(n, -1, np.int64)
+    have = ids >= 0
+    if n < F2F_MIN_FIT + 1 or not history or have.sum() < F2F_MIN_FIT:
+        return out
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    tree = cKDTree(pts)
+    s_cur = _nn_dist(tree, pts)
+    top = int(max(ids.max(), max((int(h[1].max(initial=-1)) for h in history), default=-1))) + 1
+    blob_of = np.full(top, -1, np.int64)
+    blob_of[ids[have]] = np.flatnonzero(have)
+    seen = np.zeros(top, bool)                # certified in a more recent frame: not lost from this one
+    seen[ids[have]] = True
+    for xy, hid in history[:REACQUIRE_FRAMES]:
+        hid = np.asarray(hid, np.int64)
+        if len(hid) < F2F_MIN_FIT + 1:
+            seen[hid] = True
+            continue
+        P = np.ascontiguousarray(xy, dtype=np.float64)
+        lost = ~seen[hid]
+        while lost.any():
+            cur = np.where(out >= 0, out, ids)
+            blob_of[:] = -1
+            blob_of[cur[cur >= 0]] = np.flatnonzero(cur >= 0)
+            corr = blob_of[hid]
+            pred, ok, s_prev, rough, rough_ok, jac = _fit_frame(P, corr, pts)
+            ok &= lost
+            rivals = [rough[lost & rough_ok & ~ok]]
+            if not ok.any():
+                break
+            gate = np.full(len(hid), F2F_GATE)
+            if design_nbr is not None and len(design_nbr):
+                known = np.zeros(max(len(design_nbr), top) + 1, bool)
+                known[cur[cur >= 0]] = True
+                known[-1] = True                      # padding
+                gate[~known[design_nbr[hid]].all(axis=1)] = F2F_GATE_ALONE
+                # a design neighbour not certified now may have merged with the marker into the blob:
+                # it is tested as a rival, at its own rough prediction or else where the marker's map
+                # takes its last position; one not certified in this frame either has no position
+                # to test, and the marker is not re-acquired
+                row = np.full(len(known), -1, np.int64)
+                row[hid] = np.arange(len(hid))
+                for i in np.flatnonzero(ok):
+                    for n in design_nbr[hid[i]]:
+                        if n < 0 or known[n]:
+                            continue
+                        r = row[n]
+                        if r < 0:
+                            ok[i] = False
+                            break
+                        if not rough_ok[r]:
+                            rivals.append((pred[i] + jac[i].reshape(2, 2) @ (P[r] - P[i]))[None])
+            rivals = np.vstack(rivals)
+            got = _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, cur >= 0, rivals)
+            hit = got >= 0
+            if not hit.any():
+                break
+            out[got[hit]] = hid[hit]
+            lost &= ~hit
+        seen[hid] = True
+    return out
+
+
+def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
+    """:func:`_accept` for re-acquisition: the nearest blob must also be free (not ``taken``), and the
+    identified blobs count as predictions of their markers in the mutual test, as do ``rivals``: the
+    predictions of the other lost markers whose fit did not pass the residual test (a lost neighbour
+    merged into the same blob by the detector is as near to it as the marker; its prediction is rough
+    but says so)."""
+    out = np.full(len(pred), -1, np.int64)
+    idx = np.flatnonzero(ok)
+    d, j = tree.query(pred[idx], k=2)
+    others = np.vstack([pred[idx], pts[taken], rivals])
+    s_pred = np.minimum(s_prev[idx], _nn_dist(cKDTree(others), others)[:len(idx)])
+    s = np.minimum(s_cur[j[:, 0]], s_pred)
+    good = (~taken[j[:, 0]] & (d[:, 0] <= gate[idx] * s) & (d[:, 1] >= F2F_RATIO * d[:, 0])
+            & (d[:, 1] - d[:, 0] >= F2F_MARGIN * s))
+    idx, j1, d1, s = idx[good], j[good, 0], d[good, 0], s[good]
+    if len(idx) == 0:
+        return out
+    # mutual: the blob's nearest "prediction" (re-acquired predictions and identified blobs) is this
+    # marker's, and the next one is clearly farther
+    cand = np.vstack([pred[idx], pts[taken], rivals])
+    pd, pj = cKDTree(cand).query(pts[j1], k=2)
+    mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
+    idx, j1 = idx[mutual], j1[mutual]
+    u, c = np.unique(j1, return_counts=True)
+    single = ~np.isin(j1, u[c > 1])
+    out[idx[single]] = j1[single]
     return out
