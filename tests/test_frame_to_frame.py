@@ -12,7 +12,7 @@ from pipeline.design import load_design
 from pipeline.types import Blobs
 from pipeline.vision.dtrc import DTRCTracker, code_rings
 from pipeline.vision.identity import frame_to_frame, lattice_of
-from pipeline.vision.identity.temporal import reacquire
+from pipeline.vision.identity.reacquire import reacquire
 
 
 def _blobs(pts):

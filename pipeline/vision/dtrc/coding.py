@@ -91,7 +91,7 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
     history : sequence of (xy_px (K, 2), ids (K,)), optional
         The identified markers of the frames before the previous one, most recent first: a marker lost
         since is re-acquired when its neighbours' motion from its last certified position certifies a
-        free blob (:func:`pipeline.vision.identity.temporal.reacquire`). Used only with ``previous``.
+        free blob (:func:`pipeline.vision.identity.reacquire.reacquire`). Used only with ``previous``.
 
     Returns
     -------

@@ -14,7 +14,7 @@ from pipeline.design import SensorDesign
 from pipeline.types import Blobs, MarkerMatches
 from pipeline.vision.dtrc.coding import RingCoding, code_rings
 from pipeline.vision.dtrc.ring_codes import _marker_count
-from pipeline.vision.identity.temporal import REACQUIRE_FRAMES
+from pipeline.vision.identity.reacquire import REACQUIRE_FRAMES
 
 
 # ----- stereo matching and tracking ---------------------------------------------------------

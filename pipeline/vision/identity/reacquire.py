@@ -1,0 +1,150 @@
+"""Re-acquisition: a marker lost before the previous frame is taken back by the frame-to-frame map.
+
+A marker the detector merged with a crowded neighbour, or whose neighbourhood the frame-to-frame map
+(:mod:`pipeline.vision.identity.temporal`) could not fit, for a frame or two, has no certified position in
+the previous frame to be followed from. :func:`reacquire` predicts it from its last certified position in
+an earlier frame, moved by its neighbours' motion from that frame to now, under the frame-to-frame tests
+unchanged, and gives it only a blob that carries no id; its uncertified design neighbours are tested as
+rivals, so a blob of two merged pins goes to neither.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN,
+                                               F2F_MIN_FIT, F2F_NEIGHBOURS, F2F_RADIUS, F2F_RATIO, F2F_SPREAD,
+                                               _median_where, _nn_dist, _predict)
+
+__all__ = ["REACQUIRE_FRAMES", "reacquire"]
+
+
+#: Earlier frames a marker lost from the previous frame may be re-acquired from: its last certified
+#: position there and its neighbours' motion since (a lost marker is one the detector merged with a
+#: crowded neighbour, or whose neighbourhood the frame-to-frame map could not fit, for a frame or two).
+REACQUIRE_FRAMES = 3
+
+
+def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
+    """The frame-to-frame fit's neighbour structure for markers at ``P`` (one earlier frame), and each
+    one's current prediction from the neighbours that have a current blob ``corr`` (see :func:`_predict`)."""
+    m = len(P)
+    ptree = cKDTree(P)
+    s_prev = _nn_dist(ptree, P)
+    k = min(F2F_NEIGHBOURS, m - 1)
+    dn, nb = ptree.query(P, k=k + 1)
+    dn, nb = dn[:, 1:], nb[:, 1:]
+    near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
+    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
+    s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
+    pred, ok, jac = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+    rough, rough_ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
+    return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok, jac
+
+
+def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray | None = None) -> np.ndarray:
+    """Ids of markers lost before the previous frame that the frame-to-frame map re-acquires on the
+    free blobs of the current frame (blobs without an id in ``ids`` (n,)); -1 elsewhere.
+
+    ``history``: the certified markers (xy_px (M, 2), ids (M,)) of the frames before the previous one,
+    most recent first (:data:`REACQUIRE_FRAMES` are used). A marker certified in one of them but in
+    none since (nor now) is predicted from its last certified position moved by the affine map of its
+    neighbours' motion from that frame to now (neighbours certified in both, the marker excluded),
+    under the tests of :func:`frame_to_frame` unchanged: at least :data:`F2F_MIN_FIT` neighbours
+    spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL` local spacings; the nearest
+    blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design neighbour is not
+    certified now, so that it may share the blob) of the prediction, :data:`F2F_RATIO` times and
+    :data:`F2F_MARGIN` spacings nearer than the second-nearest blob (identified or not); and mutual: no
+    other re-acquired prediction and no identified blob nearly as near to that blob. The blob must
+    be free: a blob that carries another marker's id is never taken, even when it is the nearest."""
+    n = len(pts)
+    out = np.full(n, -1, np.int64)
+    have = ids >= 0
+    if n < F2F_MIN_FIT + 1 or not history or have.sum() < F2F_MIN_FIT:
+        return out
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    tree = cKDTree(pts)
+    s_cur = _nn_dist(tree, pts)
+    top = int(max(ids.max(), max((int(h[1].max(initial=-1)) for h in history), default=-1))) + 1
+    blob_of = np.full(top, -1, np.int64)
+    blob_of[ids[have]] = np.flatnonzero(have)
+    seen = np.zeros(top, bool)                # certified in a more recent frame: not lost from this one
+    seen[ids[have]] = True
+    for xy, hid in history[:REACQUIRE_FRAMES]:
+        hid = np.asarray(hid, np.int64)
+        if len(hid) < F2F_MIN_FIT + 1:
+            seen[hid] = True
+            continue
+        P = np.ascontiguousarray(xy, dtype=np.float64)
+        lost = ~seen[hid]
+        while lost.any():
+            cur = np.where(out >= 0, out, ids)
+            blob_of[:] = -1
+            blob_of[cur[cur >= 0]] = np.flatnonzero(cur >= 0)
+            corr = blob_of[hid]
+            pred, ok, s_prev, rough, rough_ok, jac = _fit_frame(P, corr, pts)
+            ok &= lost
+            rivals = [rough[lost & rough_ok & ~ok]]
+            if not ok.any():
+                break
+            gate = np.full(len(hid), F2F_GATE)
+            if design_nbr is not None and len(design_nbr):
+                known = np.zeros(max(len(design_nbr), top) + 1, bool)
+                known[cur[cur >= 0]] = True
+                known[-1] = True                      # padding
+                gate[~known[design_nbr[hid]].all(axis=1)] = F2F_GATE_ALONE
+                # a design neighbour not certified now may have merged with the marker into the blob:
+                # it is tested as a rival, at its own rough prediction or else where the marker's map
+                # takes its last position; one not certified in this frame either has no position
+                # to test, and the marker is not re-acquired
+                row = np.full(len(known), -1, np.int64)
+                row[hid] = np.arange(len(hid))
+                for i in np.flatnonzero(ok):
+                    for n in design_nbr[hid[i]]:
+                        if n < 0 or known[n]:
+                            continue
+                        r = row[n]
+                        if r < 0:
+                            ok[i] = False
+                            break
+                        if not rough_ok[r]:
+                            rivals.append((pred[i] + jac[i].reshape(2, 2) @ (P[r] - P[i]))[None])
+            rivals = np.vstack(rivals)
+            got = _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, cur >= 0, rivals)
+            hit = got >= 0
+            if not hit.any():
+                break
+            out[got[hit]] = hid[hit]
+            lost &= ~hit
+        seen[hid] = True
+    return out
+
+
+def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
+    """:func:`_accept` for re-acquisition: the nearest blob must also be free (not ``taken``), and the
+    identified blobs count as predictions of their markers in the mutual test, as do ``rivals``: the
+    predictions of the other lost markers whose fit did not pass the residual test (a lost neighbour
+    merged into the same blob by the detector is as near to it as the marker; its prediction is rough
+    but says so)."""
+    out = np.full(len(pred), -1, np.int64)
+    idx = np.flatnonzero(ok)
+    d, j = tree.query(pred[idx], k=2)
+    others = np.vstack([pred[idx], pts[taken], rivals])
+    s_pred = np.minimum(s_prev[idx], _nn_dist(cKDTree(others), others)[:len(idx)])
+    s = np.minimum(s_cur[j[:, 0]], s_pred)
+    good = (~taken[j[:, 0]] & (d[:, 0] <= gate[idx] * s) & (d[:, 1] >= F2F_RATIO * d[:, 0])
+            & (d[:, 1] - d[:, 0] >= F2F_MARGIN * s))
+    idx, j1, d1, s = idx[good], j[good, 0], d[good, 0], s[good]
+    if len(idx) == 0:
+        return out
+    # mutual: the blob's nearest "prediction" (re-acquired predictions and identified blobs) is this
+    # marker's, and the next one is clearly farther
+    cand = np.vstack([pred[idx], pts[taken], rivals])
+    pd, pj = cKDTree(cand).query(pts[j1], k=2)
+    mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
+    idx, j1 = idx[mutual], j1[mutual]
+    u, c = np.unique(j1, return_counts=True)
+    single = ~np.isin(j1, u[c > 1])
+    out[idx[single]] = j1[single]
+    return out
