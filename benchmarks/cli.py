@@ -6,7 +6,7 @@
                        [--calibration oracle|estimated] [--error-sources calibration,index,thickness]
     stereotactip sweep --experiment NAME --skin 0.5,1.0,1.5 --separation 1.80,2.54,3.54
                        --pattern hexagon,square,circular [--quick] --out DIR [--workers N | --cluster ADDRESS]
-    stereotactip report DIR
+    stereotactip report DIR [--against DIR2] [--readme README.md [--block NAME]...]
 
 Exit status of ``bench``: 0 when every experiment ran (and, with ``--check``, every guarded
 quick metric is within ``benchmarks/thresholds.toml``), 1 on an experiment error or a regression.
@@ -165,9 +165,9 @@ def _report(args: argparse.Namespace) -> int:
     path = write_report(Path(args.dir), against=Path(args.against) if args.against else None)
     print(path)
     if args.readme:
-        from benchmarks.report import update_readme
+        from benchmarks.readme_blocks import update_readme
 
-        print(update_readme(Path(args.readme), Path(args.dir)))
+        print(update_readme(Path(args.readme), Path(args.dir), tuple(args.block or ("gate-figures",))))
     print(path.with_name("report.html"))
     if path.with_name("report.png").is_file():
         print(path.with_name("report.png"))
@@ -215,7 +215,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="add a side-by-side table of the experiments DIR2 also holds (e.g. an oracle and an "
                         "estimated run)")
     r.add_argument("--readme", metavar="README.md",
-                   help="also rewrite the gate-figures block of this README from the quick records in DIR")
+                   help="also rewrite generated blocks of this README from the records in DIR (default: the "
+                        "gate-figures block, from the quick records)")
+    r.add_argument("--block", action="append", metavar="NAME",
+                   help="with --readme: the block to rewrite, e.g. twin-speed from a `bench twin` results "
+                        "directory, identification-coverage from a `bench identification` one (repeatable; names "
+                        "in benchmarks/readme_blocks.py)")
     r.set_defaults(func=_report)
 
     from benchmarks import cli_terrain

@@ -6,7 +6,7 @@ The twin knows its cameras, refractive index and stack thicknesses exactly; a us
   :func:`pipeline.geometry.calibration.calibrate_stereo` on the twin's skin-less chessboard renders,
   :func:`twin.render.render_chessboard_pairs`), with the left camera placed at the design's nominal pose;
 * the gel index is fitted from a skin-less marker-board press (``stereotactip calibrate-refraction``:
-  :func:`pipeline.geometry.refraction.fit_index_from_press` on frames the twin renders through its true stack);
+  :func:`pipeline.geometry.index_fit.fit_index_from_press` on frames the twin renders through its true stack);
 * the built stack differs from its drawing within manufacturing tolerances: gel thickness
   ±:data:`GEL_TOL_MM`, acrylic thickness ±:data:`ACRYLIC_TOL_MM`, gel index ±:data:`INDEX_TOL`
   (uniform draws from a seeded stream per design).
@@ -156,7 +156,7 @@ def fitted_index(twin_design: SensorDesign, design: SensorDesign, calib: StereoC
     import json
 
     from pipeline.io.atomic import atomic_write_json
-    from pipeline.geometry.refraction import fit_index_from_press
+    from pipeline.geometry.index_fit import fit_index_from_press
     from twin.render import StereoRenderer
 
     path = _cache_file(cache_dir, f"index-{key}.json")

@@ -3,7 +3,8 @@
 The page holds a run summary, the table "paper figure vs this run" (each experiment's declared
 paper values next to the measured metric, then the paper's qualitative claims with this run's
 verdict), the threshold gate for quick runs, and one section per experiment with its metrics,
-notes, findings and figures; sweep tables found in DIR are appended.
+notes, findings and figures; sweep tables found in DIR are appended. The README's generated blocks
+(``--readme``) are written by :mod:`benchmarks.readme_blocks`.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from benchmarks.results import ResultsError, load_records
-from benchmarks.thresholds import bounds_text, check, load_thresholds
+from benchmarks.thresholds import check, load_thresholds
 
-__all__ = ["write_report", "render_report", "gate_figures_markdown", "update_readme", "README_BEGIN", "README_END"]
+__all__ = ["write_report", "render_report"]
 
 
 def _fmt(value: Any, digits: int = 4) -> str:
@@ -206,65 +207,3 @@ def write_report(out_dir: Path, screenshot: bool = True, against: Path | None = 
     if shot is None:
         png.unlink(missing_ok=True)
     return path
-
-
-# ----- the README's gate figures, written from the records -------------------------------------
-
-README_BEGIN = "<!-- report:gate-figures:begin (written by `stereotactip report DIR --readme README.md`; do not edit) -->"
-README_END = "<!-- report:gate-figures:end -->"
-
-
-def gate_figures_markdown(records: Mapping[str, Mapping[str, Any]], source: str) -> str:
-    """The quick gate's figures as a Markdown table: every metric ``benchmarks/thresholds.toml`` guards, the
-    value the records in ``source`` give it, its golden and sanity bounds and whether it passes. This is what
-    the README shows, so its figures are the benchmark's output, not typed in."""
-    thresholds = load_thresholds()
-    recs = {n: r for n, r in sorted(records.items()) if r.get("quick")}
-    if not recs:
-        raise ResultsError(f"{source}: no quick records: the gate figures come from a --quick run")
-    commits = sorted({str(r.get("commit", "unknown"))[:10] for r in recs.values()})
-    modes = sorted({(r.get("calibration") or {}).get("mode", "oracle") for r in recs.values()})
-    violations = {(v.experiment, v.metric) for v in check(recs, thresholds, experiments=list(recs))}
-    lines = [README_BEGIN, "",
-             f"Quick gate figures from `{source}` (commit {', '.join(commits)}, calibration "
-             f"{', '.join(modes)}, seed {', '.join(sorted({str(r.get('seed')) for r in recs.values()}))}):", "",
-             "| experiment | metric | this run | golden | sanity | kind | gate |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
-    for exp, table in thresholds.items():
-        rec = recs.get(exp)
-        if rec is None:
-            continue
-        mode = (rec.get("calibration") or {}).get("mode", "oracle")
-        for th in table.values():
-            if th.mode is not None and th.mode != mode:
-                continue
-            m = rec.get("metrics", {}).get(th.metric) or {}
-            unit = m.get("unit", "")
-            shown = th.metric if th.mode is None else f"{th.metric} ({th.mode})"
-            value = f"{_fmt(m.get('value'))} {unit if unit != '1' else ''}".strip()
-            golden = bounds_text(th.golden_min, th.golden_max, table=True)
-            sanity = bounds_text(th.min, th.max, table=True)
-            ok = "**fails**" if (exp, shown) in violations else "passes"
-            lines.append(f"| {exp} | {shown} | {value} | {golden} | {sanity} | {th.kind or '—'} | {ok} |")
-    lines += ["", README_END]
-    return "\n".join(lines)
-
-
-def update_readme(readme: Path, records_dir: Path) -> Path:
-    """Replace the block between :data:`README_BEGIN` and :data:`README_END` in ``readme`` with
-    :func:`gate_figures_markdown` of the records in ``records_dir`` (atomically); everything else is kept."""
-    from pipeline.io.atomic import atomic_write_text
-
-    readme = Path(readme)
-    try:
-        text = readme.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ResultsError(f"README {readme}: unreadable ({type(exc).__name__})") from None
-    if text.count(README_BEGIN) != 1 or text.count(README_END) != 1 or text.index(README_BEGIN) > text.index(README_END):
-        raise ResultsError(f"README {readme}: needs exactly one gate-figures block, the line {README_BEGIN!r} "
-                           f"followed by {README_END!r}")
-    head, rest = text.split(README_BEGIN, 1)
-    _, tail = rest.split(README_END, 1)
-    block = gate_figures_markdown(load_records(Path(records_dir)), str(records_dir))
-    atomic_write_text(readme, head + block + tail)
-    return readme

@@ -18,6 +18,8 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from benchmarks.report import _fmt   # one way a figure is printed, in report.md and report.html alike
+
 __all__ = ["render_html", "tradeoff_svg", "PLOT_METRICS_MAX"]
 
 #: Metrics per sweep drawn as trade-off plots (the experiment's first declared ones with numbers).
@@ -28,16 +30,6 @@ _COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#
 
 def _e(text: Any) -> str:
     return html.escape(str(text), quote=True)
-
-
-def _fmt(value: Any, digits: int = 4) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "—"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    if isinstance(value, (int, float)):
-        return f"{value:.{digits}g}"
-    return str(value)
 
 
 def _num(v: Any) -> float | None:

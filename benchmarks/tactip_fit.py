@@ -25,6 +25,11 @@ The tilt-frame search scores the projected twin pin tips against the identified 
 the training frames); the pin, skin and depth-offset searches score the displacements (each frame minus
 the reference tap, twin against real), which the reference camera's rest-geometry bias does not enter.
 The held-out frames are never used here.
+
+One module over ~400 lines on purpose: the stages above are one fit read top to bottom, each stage
+refining what the one before fixed (the camera the physics searches project through, the skin the camera
+is refitted with) and all sharing :class:`FitContext`; the command, its cache and the summary are
+:mod:`benchmarks.tactip_fit_cli`.
 """
 
 from __future__ import annotations

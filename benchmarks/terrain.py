@@ -21,6 +21,11 @@ centre, tap plane, sensor back end, seed, scan step, the sensor design's content
 :data:`TAP_CODE_VERSION` — so a changed ``--tap-z`` or a truncated file recomputes the tap), per region
 ``<region>_height.npz`` (pipeline HeightMap, global frame), ``<region>_points.ply``, ``<region>.png``
 (truth | reconstruction | error), ``world.png``, and ``terrain.json`` (metrics, tap counts, wall time).
+
+One module (just over ~400 lines) on purpose: a tap's job, its key and its file are one contract
+(resuming depends on all three agreeing), kept beside the scan that plans, runs and merges the taps; the
+regions and the zigzag plan are :mod:`benchmarks.terrain_regions`, the scoring and figures
+:mod:`benchmarks.terrain_score`.
 """
 
 from __future__ import annotations

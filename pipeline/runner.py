@@ -2,16 +2,13 @@
 
 :class:`Reconstructor` chains the stage functions for one sensor and keeps the little state the
 stages need across frames (the tracker, the undeformed reference for the linear refraction model).
-:func:`reconstruct` runs it over a frame source and writes the results to a folder.
+:func:`pipeline.batch.reconstruct` runs it over a frame source and writes the results to a folder.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -24,8 +21,7 @@ from pipeline.geometry.triangulation import matched_rays, triangulate
 from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
 
-__all__ = ["Reconstructor", "FrameResult", "reconstruct", "compile_kernels", "RunnerError", "REFRACTION_MODES",
-           "TRACKERS"]
+__all__ = ["Reconstructor", "FrameResult", "compile_kernels", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
 
 REFRACTION_MODES = ("exact", "linear")
 TRACKERS = ("dtrc", "nn")
@@ -107,10 +103,6 @@ class FrameResult:
             kind = first.split(": ", 1)[1] if first.startswith(("left: ", "right: ")) else first
             kinds["stereo check" if kind.startswith("stereo check") else kind] += 1
         return dict(kinds.most_common())
-
-
-def _finite_or_none(x: float) -> float | None:
-    return x if np.isfinite(x) else None
 
 
 def _empty_cloud() -> MarkerCloud:
@@ -299,125 +291,18 @@ class Reconstructor:
         return out
 
 
-def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out_dir: str | Path, *,
-                max_frames: int | None = None, preview_every: int = 0, progress: bool = True,
-                echo=print, on_result=None) -> dict:
-    """Run a reconstructor over frames and write results to ``out_dir``.
-
-    Per frame: ``markers_XXXX.csv`` and ``markers_XXXX.ply`` (corrected markers), ``skin_XXXX.ply``
-    (skin points + normals), ``heightmap_XXXX.npz``; for the last frame (and every ``preview_every``-th
-    if > 0) ``surface_XXXX.stl`` / ``surface_XXXX.ply`` meshes and ``preview_XXXX.png``; finally
-    ``summary.json``. Every file is written atomically. Returns the summary dict. ``on_result(frame,
-    result)``, if given, is called for every processed frame (e.g. to score it or keep it in memory).
-
-    ``summary.json`` is written whatever happens: with ``"stopped": null`` after the last frame, or
-    with the reason if the source fails or the run is interrupted (then the exception is re-raised).
-    Frames a source skipped as unreadable (``FrameSource.skipped``, see ``open_source(...,
-    skip_unreadable=True)``) are printed as they occur and listed under ``"skipped"``; frames in which
-    no marker was reconstructed are listed under ``"no_markers"``.
-    """
-    from tqdm import tqdm
-
-    from pipeline.io.atomic import atomic_write_json
-    from pipeline.io.files import heightmap_mesh, write_heightmap_npz, write_markers_csv, write_ply, write_preview_png
-    from pipeline.io.files import write_stl
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    design = reconstructor.design
-    per_frame = []
-    last = None
-    skipped_source = getattr(frames, "skipped", None)
-    n_skipped_seen = 0
-    bar = tqdm(total=max_frames, unit="frame", disable=not progress, leave=False)
-
-    def mesh_outputs(res: FrameResult, hm: HeightMap | None) -> None:
-        tag = f"{res.index:04d}"
-        if hm is not None:
-            V, F = heightmap_mesh(hm)
-            if len(F):
-                write_stl(out / f"surface_{tag}.stl", V, F)
-                write_ply(out / f"surface_{tag}.ply", V, faces=F, binary=True)
-        write_preview_png(out / f"preview_{tag}.png", hm, res.corrected,
-                          title=f"{design.name} frame {res.index}: {res.n_matched}/{res.n_expected} markers")
-
-    def report_skips() -> None:
-        nonlocal n_skipped_seen
-        if skipped_source is None:
-            return
-        for item in skipped_source[n_skipped_seen:]:
-            echo(f"frame {item['index']}: SKIPPED, {item['error']}")
-        n_skipped_seen = len(skipped_source)
-
-    def write_summary(stopped: str | None) -> dict:
-        totals = np.array([f["timings_ms"]["total"] for f in per_frame])
-        summary = {"design": design.name, "refraction": reconstructor.refraction,
-                   "tracker": reconstructor.tracker_name, "n_gel": reconstructor.n_gel, "frames": len(per_frame),
-                   "units": {"xyz": "mm", "time": "ms"},
-                   "median_total_ms": float(np.median(totals)) if len(totals) else None,
-                   "skipped": list(skipped_source or []),
-                   "no_markers": [f["index"] for f in per_frame if f["matched"] == 0],
-                   "stopped": stopped, "per_frame": per_frame}
-        atomic_write_json(out / "summary.json", summary, indent=1, allow_nan=False)
-        return summary
-
-    try:
-        for k, frame in enumerate(frames):
-            report_skips()
-            if max_frames is not None and k >= max_frames:
-                break
-            res = reconstructor.process(frame)
-            if on_result is not None:
-                on_result(frame, res)
-            tag = f"{res.index:04d}"
-            write_markers_csv(out / f"markers_{tag}.csv", res.corrected)
-            write_ply(out / f"markers_{tag}.ply", res.corrected.xyz_mm)
-            hm = res.height_map
-            if res.skin is not None:
-                write_ply(out / f"skin_{tag}.ply", res.skin.xyz_mm, normals=res.skin.normals)
-                if hm is None:
-                    hm = height_map(res.skin, mask_radius_mm=design.gel.radius_mm)
-                write_heightmap_npz(out / f"heightmap_{tag}.npz", hm)
-            if preview_every > 0 and k % preview_every == 0:
-                mesh_outputs(res, hm)
-            echo(res.summary(design))
-            per_frame.append({"index": res.index, "timestamp_s": res.timestamp_s, "matched": res.n_matched,
-                              "expected": res.n_expected, "max_abs_dz_mm": _finite_or_none(res.max_abs_dz_mm(design)),
-                              "unmatched_ids": res.unmatched_ids.tolist(),
-                              "unmatched_reasons": {str(k): v for k, v in res.unmatched_reasons.items()},
-                              "timings_ms": res.timings_ms,
-                              "notes": list(res.notes)})
-            last = (res, hm)
-            bar.update(1)
-        report_skips()
-    except BaseException as exc:
-        bar.close()
-        reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"{type(exc).__name__}: {exc}"
-        write_summary(reason.splitlines()[0] if reason else type(exc).__name__)
-        raise
-    bar.close()
-    if last is None:
-        write_summary("the source delivered no readable frame")
-        n_skip = len(skipped_source or [])
-        raise RunnerError("reconstruct: the source delivered no frames" if not n_skip else
-                          f"reconstruct: none of the source's frames is readable ({n_skip} skipped; "
-                          f"see {out / 'summary.json'})")
-    mesh_outputs(*last)
-    return write_summary(None)
-
-
 def compile_kernels() -> float:
     """Run the whole chain on two analytic frames so that numba compiles (or loads from its cache)
     every kernel of the common path; returns the seconds it took. The first call after an install
     compiles (~30-35 s on the 2-core reference machine), later ones load the cached machine code in
     well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
-    from pipeline.design import load_design
+    from pipeline.design import DEFAULT_DESIGN, load_design
     from pipeline.vision.detection import detect_markers
     from pipeline.vision.dtrc import code_rings
     from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
     t0 = time.perf_counter()
-    design = load_design("hexagon127")
+    design = load_design(DEFAULT_DESIGN)
     calib = nominal_calibration(design)
     rec = Reconstructor(design, calib)
     for depth in (0.0, 2.0):

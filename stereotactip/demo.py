@@ -103,7 +103,8 @@ def run_demo(out_dir: str | Path, *, design_name: str = DEFAULT_DESIGN, sigma2_m
     import cv2
 
     from pipeline.design import load_design
-    from pipeline.runner import Reconstructor, reconstruct
+    from pipeline.batch import reconstruct
+    from pipeline.runner import Reconstructor
     from pipeline.types import StereoCalibration, StereoFrame
     from twin.indenters import make_indenter
     from twin.physics import AXIS_CONTACT_MESH

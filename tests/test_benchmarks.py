@@ -2,7 +2,9 @@
 that walks the registry and checks every experiment's invariants (dm_control ``suite_test`` style).
 
 Cheap experiments (tag ``cheap``) run for real with tiny settings; the expensive ones are exercised
-by ``stereotactip bench all --quick --check`` in CI (``make test``).
+by ``stereotactip bench all --quick --check`` in CI (``make test``). Over ~400 lines on purpose: the
+framework's pieces (records, gate, report, README blocks, sweep, CLI) share the toy experiment and its
+fixtures defined at the top.
 """
 
 from __future__ import annotations
@@ -455,7 +457,7 @@ def test_binary_thresholds_file_is_a_user_error(tmp_path):
 def test_readme_gate_figures_are_written_from_the_records(toy, tmp_path, monkeypatch):
     """The README's gate figures are the benchmark's output: the block between the markers is rewritten from
     the quick records, the rest of the file is kept, a rerun changes nothing, a missing block is an error."""
-    from benchmarks.report import README_BEGIN, README_END, update_readme
+    from benchmarks.readme_blocks import README_BEGIN, README_END, update_readme
 
     out = tmp_path / "run"
     res.write_record(res.execute(toy, Context(out_dir=out, quick=True, progress=False)), out)
@@ -489,7 +491,7 @@ skin_mm = { max = 0.5, why = "violated on purpose" }
 def test_readme_shows_every_metric_the_ci_gate_guards():
     """The README's gate-figures block (written by `stereotactip report DIR --readme README.md` from the CI
     run) lists every metric the CI gate (estimated mode) guards: a changed thresholds file needs a rerun."""
-    from benchmarks.report import README_BEGIN, README_END
+    from benchmarks.readme_blocks import README_BEGIN, README_END
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
     assert text.count(README_BEGIN) == 1 and text.count(README_END) == 1
@@ -500,6 +502,50 @@ def test_readme_shows_every_metric_the_ci_gate_guards():
             if th.mode in (None, "estimated"):
                 name = th.metric if th.mode is None else f"{th.metric} ({th.mode})"
                 assert (exp, name) in shown, f"README gate figures lack {exp}.{name}: rerun the report with --readme"
+
+
+def test_readme_headline_blocks_match_the_records_they_were_written_from():
+    """The README's headline tables (twin speed, identification coverage) are generated blocks: each is written
+    again from the record it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
+    figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
+    fails here."""
+    from benchmarks.readme_blocks import readme_blocks, render_block
+
+    root = Path(__file__).resolve().parents[1]
+    blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
+    assert {"gate-figures", "twin-speed", "identification-coverage"} <= set(blocks)
+    for name, text in blocks.items():
+        if name == "gate-figures":      # written from the CI run's directory; checked metric by metric above
+            continue
+        source = text.split("` record in `", 1)[1].split("`", 1)[0]
+        assert source.startswith("docs/records/"), f"README block {name}: its record is not kept in docs/records/"
+        records = res.load_records(root / source)
+        assert render_block(name, records, source) == text, (
+            f"README block {name} differs from {source}: rerun `stereotactip report {source} --readme README.md "
+            f"--block {name}`")
+
+
+def test_readme_block_is_written_from_its_experiment_only(tmp_path):
+    """`report DIR --readme README.md --block twin-speed` rewrites that block alone from DIR's `twin` record
+    (the other blocks and the prose are kept); a directory without that record, or a README without the
+    block, is a clear error."""
+    from benchmarks.readme_blocks import begin_marker, end_marker, update_readme
+
+    root = Path(__file__).resolve().parents[1]
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "twin.json").write_bytes((root / "docs/records/twin-speed/twin.json").read_bytes())
+    readme = tmp_path / "README.md"
+    other = f"{begin_marker('identification-coverage')}\nkept\n{end_marker('identification-coverage')}"
+    readme.write_text(f"# T\n\n{begin_marker('twin-speed')}\nold\n{end_marker('twin-speed')}\n\n{other}\n")
+    assert main(["report", str(run), "--readme", str(readme), "--block", "twin-speed"]) == 0
+    text = readme.read_text()
+    assert "old" not in text and other in text and text.startswith("# T\n\n")
+    assert "| 5 mm press to equilibrium" in text and "1.31 s median" in text
+    with pytest.raises(res.ResultsError, match="no 'identification' record"):
+        update_readme(readme, run, ("identification-coverage",))
+    with pytest.raises(res.ResultsError, match="needs exactly one gate-figures block"):
+        update_readme(readme, run)
 
 
 def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy, tmp_path, monkeypatch):

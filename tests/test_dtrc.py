@@ -1,4 +1,7 @@
-"""DTRC ring coding, stereo matching and tracking on synthetic lattices of the real designs."""
+"""DTRC ring coding, stereo matching and tracking on synthetic lattices of the real designs.
+
+Over ~400 lines on purpose: the lattices, defect generators and corpus checks are shared by the coding,
+pairing and tracking tests below (the certainty rule itself is tested in ``tests/test_identity.py``)."""
 
 import zlib
 from pathlib import Path

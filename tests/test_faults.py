@@ -12,7 +12,8 @@ import pytest
 from pipeline.io.atomic import atomic_open, atomic_write_text, is_temp_name
 from pipeline.design import load_design
 from pipeline.errors import SourceError
-from pipeline.runner import Reconstructor, reconstruct
+from pipeline.batch import reconstruct
+from pipeline.runner import Reconstructor
 from pipeline.io.sources import FrameSource, open_source, record
 from pipeline.types import StereoFrame
 from stereotactip.cli import main

@@ -270,7 +270,7 @@ def test_fan_test_rejects_swapped_neighbours_and_a_blob_inside_the_fan():
         ring = np.empty(lat.fan.shape[1], np.int64)
         near = np.empty(24, np.int64)
         return _embedded(pts, True, adj[0], adj[1], b, labels[b], _blob_of(labels, len(lat.xy)),
-                         lat.xy, lat.fan, lat.fan_closed, lat.pitch, 0.35, ring, near, np.empty(24))
+                         lat.xy, lat.fan, lat.fan_closed, lat.pitch, 0.35, ring, near, np.empty(24), np.empty(12))
 
     assert intact(uv, truth, centre) == 1
     a, b = lat.fan[centre, 0], lat.fan[centre, 1]

@@ -11,6 +11,8 @@
 * The twin's rendered marker images (per-vertex refraction, straight edges, lens remap) against a
   per-pixel ray-traced reference (OpenCV's lens inversion, a vector Snell trace and the marker solids
   written here), at the image centre and out to the image corners of both cameras.
+
+Over ~400 lines on purpose: each reference is written out here in full, next to the checks that use it.
 """
 
 from __future__ import annotations

@@ -1,6 +1,8 @@
 """MuJoCo skin model: compiles for every design, rest markers exact, contact fidelity, pins.
 
-Each test states its tolerance; the model is run at the resolutions the twin uses.
+Each test states its tolerance; the model is run at the resolutions the twin uses. Over ~400 lines on
+purpose: one file for everything that pins the skin model's physics (each test builds its own sim, so
+splitting the file would only split the list).
 """
 
 import numpy as np
@@ -518,3 +520,32 @@ def test_friction_below_the_stick_load_slides_at_coulombs_limit():
     _, settled, held, qp, converged = _slide(0.3)
     assert converged and 0.3 <= qp <= 0.36, (qp, converged)
     assert settled < 0.8 and held < 0.8, (settled, held)
+
+
+def test_rounded_edge_keeps_the_flat_top_and_lowers_the_clamp_to_the_mount():
+    """MeshSpec(edge_drop_mm=...): the skin is flat where the markers are (rest markers exact), rounds down
+    beyond edge_start_mm, and every clamped outer vertex sits on the mount edge_drop_mm below the skin's top; no
+    tetrahedron inverts. A pattern whose markers reach onto the edge is refused."""
+    import dataclasses
+
+    from twin.mesh import build_mesh
+
+    spec = MeshSpec(face_contact=True, fine_half_mm=15.0, edge_start_mm=16.5, edge_drop_mm=5.0)
+    for name in ("hexagon61_sep354", "hexagon127", "hexagon217_sep180"):
+        d = load_design(name)
+        m = build_mesh(d, spec)
+        top = m.nodes_mm[m.top]
+        r = np.hypot(top[:, 0], top[:, 1])
+        clamped = m.pinned[m.top]
+        assert np.allclose(top[clamped, 2], -5.0)
+        assert np.all(top[r <= 16.5, 2] == 0.0) and np.all(np.diff(top[np.argsort(r), 2]) <= 1e-9)
+        flat = build_mesh(d, dataclasses.replace(spec, edge_drop_mm=1e-9))    # the same cells, not lowered
+        vol6 = []
+        for mesh in (m, flat):
+            X = mesh.nodes_mm[np.vstack([mesh.tets_skin, mesh.tets_gel])]
+            vol6.append(np.linalg.det(np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)))
+        assert np.min(vol6[0] * np.sign(vol6[1])) > 1e-3                        # none inverted or degenerate
+        sim = SkinSim(d, make_indenter("flat"), mesh=spec)
+        assert np.abs(sim.markers()[0] - d.rest_markers_mm()).max() < 0.01
+    with pytest.raises(PhysicsError):
+        build_mesh(load_design("square121"), spec)

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from pipeline.design import load_design
-from pipeline.geometry.refraction import (RefractionError, correct_exact, correct_linear, fit_refractive_index,
-                                 project_through_stack, refract_stack_rays, snell)
+from pipeline.geometry.index_fit import fit_refractive_index
+from pipeline.geometry.refraction import (RefractionError, correct_exact, correct_linear, project_through_stack,
+                                          refract_stack_rays, snell)
 from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration
 from pipeline.geometry.triangulation import camera_poses, triangulate
 from pipeline.types import MarkerCloud, MarkerMatches

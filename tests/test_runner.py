@@ -11,7 +11,8 @@ from pipeline.cli import geometry as cli_geometry
 from pipeline.design import load_design
 from benchmarks.latency import run_latency
 from pipeline.geometry.refraction import correct_exact, project_through_stack
-from pipeline.runner import Reconstructor, RunnerError, reconstruct
+from pipeline.batch import reconstruct
+from pipeline.runner import Reconstructor, RunnerError
 from pipeline.geometry.triangulation import matched_rays
 from pipeline.types import DataError, StereoFrame
 from synth_frames import chessboard_pairs, gaussian_press_markers, nominal_calibration, synth_stereo_frame
@@ -246,7 +247,7 @@ def test_stereo_check_rejects_pairs_that_cannot_be_one_marker():
 def test_unmatched_markers_come_with_reasons(tmp_path):
     """A frame with markers hidden in one view: every unmatched id has a reason naming the view
     and the certainty rule's cause; reconstruct's summary.json carries them per frame."""
-    from pipeline.runner import reconstruct
+    from pipeline.batch import reconstruct
     from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
     design = load_design("hexagon127")

@@ -155,6 +155,30 @@ def test_face_contact_holds_a_sine_pressed_across_the_module_out_of_the_skin():
 
 @pytest.mark.physics
 @pytest.mark.slow
+def test_skin_beside_a_rounded_edge_stays_out_of_a_sine_wider_than_the_module():
+    """A sine wider than the module, 2π/5 (crests 5 mm apart), yaw 120, pressed 5 mm on hexagon127. With the mount
+    flush with the skin (the default mesh) the crests reach 5 mm below it, the free skin beside it is pulled down
+    across one cell and MuJoCo's solve fails (vertex-contact fallback, 2.48 mm inside). With the skin rounding
+    down over its edge to a mount 5 mm below its top (MeshSpec.edge_drop_mm, 1.5 mm cells out to it) the plate
+    clears the mount and the whole free skin stays within PENETRATION_MAX_MM (measured 0.0195 mm, settled, no
+    MuJoCo warning, no fallback)."""
+    from pipeline.design import load_design
+    from twin import robot
+    from twin.indenters import make_indenter
+    from twin.physics import MeshSpec, SkinSim
+
+    ind = make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=2 * np.pi / 5)
+    mesh = MeshSpec(face_contact=True, fine_half_mm=15.0, edge_start_mm=16.5, edge_drop_mm=5.0)
+    sim = SkinSim(load_design("hexagon127"), ind, mesh=mesh)
+    (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0, yaw_deg=120.0))
+    v = truth.validity
+    assert sim.face_contact_fallback is None and sim.warnings() == {} and stats.converged
+    assert v["rim_overlap_mm"] <= 1e-6                       # the plate does not reach the rigid mount
+    assert v["valid"] and v["penetration_max_mm"] <= PENETRATION_MAX_MM, v["reasons"]
+
+
+@pytest.mark.physics
+@pytest.mark.slow
 def test_unstable_face_contact_falls_back_to_vertex_contact_and_is_flagged(monkeypatch):
     """Should MuJoCo's solve fail with face contact, the motion is re-run from its start with vertex contacts
     only (recorded on the sim, no MuJoCo warning left on the kept state), and the frame's own check reports
@@ -176,6 +200,35 @@ def test_unstable_face_contact_falls_back_to_vertex_contact_and_is_flagged(monke
     assert not sim.face_contact and "solve failed" in sim.face_contact_fallback
     assert sim.warnings() == {} and stats.converged
     assert not truth.validity["valid"] and truth.validity["penetration_max_mm"] > 0.3
+
+
+@pytest.mark.physics
+def test_a_face_contact_solve_that_diverges_into_a_mujoco_error_falls_back(monkeypatch):
+    """A failed face-contact solve can diverge before its warning is checked: the vertices fly apart and MuJoCo
+    raises (its collision arena overflows; measured on a 2π/5 sine pressed 5 mm on a rounded-edge mesh). That is
+    the same failed solve: the motion is re-run from its start with vertex contacts only and flagged."""
+    import mujoco
+
+    from pipeline.design import load_design
+    from twin import robot
+    from twin.indenters import make_indenter
+    from twin.physics import MeshSpec, SkinSim
+
+    real = robot._execute
+
+    def diverging(sim, motion, progress, direct, *, stop_if_unstable=None):
+        if stop_if_unstable is not None:                       # the face-contact attempt
+            sim.set_pose(*motion.waypoints[-1].pose)
+            sim.step()
+            raise mujoco.FatalError("mj_stackAlloc: out of memory, stack overflow at mj_collideTree")
+        return real(sim, motion, progress, direct)
+
+    monkeypatch.setattr(robot, "_execute", diverging)
+    sim = SkinSim(load_design("hexagon127"), make_indenter("gaussian", h_mm=5, sigma2_mm2=10),
+                  mesh=MeshSpec(face_contact=True))
+    (_, stats, truth), = robot.execute(sim, robot.press_motion(1.0))
+    assert not sim.face_contact and "solve failed" in sim.face_contact_fallback
+    assert stats.converged and sim.warnings() == {} and truth.validity["contact_force_n"] > 0
 
 
 def test_letter_surface_spheres_stay_on_the_letter_and_cover_its_edges():

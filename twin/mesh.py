@@ -15,6 +15,13 @@ skin disc (sensor frame, mm) and the pins embedded in its skin elements.
 * Domed designs: the mesh is shifted vertically by ``design.dome_z_mm`` (fully in the skin layer,
   tapering linearly to zero at the window), so the skin is the dome of constant vertical
   thickness T; rest markers are exact.
+* Rounded edge (``MeshSpec.edge_drop_mm`` > 0): the module's skin need not meet its rigid mount flush with its top.
+  Beyond ``edge_start_mm`` the skin rounds down (a smoothstep in r, level with the flat top where it starts) to the
+  innermost clamped outer vertex, and every clamped outer vertex sits on the mount ``edge_drop_mm`` below the skin's
+  top; the shift is full in the skin layer and tapers linearly to zero at the window, like the dome. The x-y
+  spacing is ``edge_mm`` over the edge, and even steps of at most ``fine_mm · growth`` lead to it. Every marker's
+  skin cell must lie on the flat top (``EDGE_MARKER_TOL_MM``), so the rest markers are those of the design. A wide
+  indenter pressed that deep then clears the mount (``rim_overlap_mm`` 0) instead of reaching below it.
 * The outer faces that take part in face contact (:func:`_face_contact_faces`): those without a
   clamped vertex.
 * Pins: each marker's pin base is the skin-underside point at the rest marker's x-y, embedded with
@@ -38,6 +45,7 @@ from pipeline.errors import UserError
 __all__ = ["MeshSpec", "AXIS_CONTACT_MESH", "PhysicsError", "build_mesh", "PinEmbedding", "embed_pins",
            "pin_markers"]
 
+EDGE_MARKER_TOL_MM = 0.02         # how far a marker's skin cell may sit on the rounded edge (MeshSpec.edge_drop_mm)
 PIN_ROTATION_RADIUS_FACTOR = 1.0  # pin rotation averaged over skin elements within 1 cell of its base
 
 
@@ -76,6 +84,10 @@ class MeshSpec:
                                   # default: as the twin's default (bench twin --quick) the σ² = 10, 5 mm press takes
                                   # 2.6 s instead of 1.9 s, the sharp tip on AXIS_CONTACT_MESH 14 s instead of 7.7 s,
                                   # and that mesh's apex ends 0.05 mm beyond the σ² = 10 tip instead of on it
+    edge_drop_mm: float = 0.0     # > 0: the skin rounds down over its edge to a mount this far below its top (module
+                                  # notes); 0: the mount is flush with the skin (the mesh is unchanged)
+    edge_start_mm: float = 16.5   # radius where the rounded edge begins: beyond every hexagon pattern's marker cells
+    edge_mm: float = 1.5          # x-y spacing from edge_start_mm out to the rim, over the edge
 
 
 # Mesh for indenters with one sharp feature on the sensor axis (Gaussians, spheres): 0.5 mm cells within 3 mm
@@ -86,7 +98,8 @@ AXIS_CONTACT_MESH = MeshSpec(core_mm=0.5, core_half_mm=3.0, face_contact=True)
 
 
 def _axis(fine_mm: float, fine_half_mm: float, growth: float, radius_mm: float,
-          core_mm: float | None = None, core_half_mm: float = 0.0) -> np.ndarray:
+          core_mm: float | None = None, core_half_mm: float = 0.0,
+          edge_start_mm: float | None = None, edge_mm: float = 1.5) -> np.ndarray:
     pos = [0.0]
     if core_mm is not None and core_mm < fine_mm and core_half_mm > 0:
         pos = list(np.arange(0, int(math.floor(core_half_mm / core_mm + 1e-9)) + 1) * core_mm)
@@ -94,6 +107,14 @@ def _axis(fine_mm: float, fine_half_mm: float, growth: float, radius_mm: float,
         pos.append(pos[-1] + fine_mm)
     step = fine_mm
     while pos[-1] < radius_mm - 1e-9:
+        if edge_start_mm is not None:
+            # even steps of at most fine_mm * growth out to where the edge starts, then edge_mm over the edge:
+            # no thin cell against a wide one, whose stiffness ratio MuJoCo's M + K solve does not converge on
+            n = max(1, math.ceil((edge_start_mm - pos[-1]) / (fine_mm * growth) - 1e-9))
+            pos += list(pos[-1] + (edge_start_mm - pos[-1]) * np.arange(1, n + 1) / n)
+            while pos[-1] < radius_mm - 1e-9:
+                pos.append(pos[-1] + edge_mm)
+            break
         step *= growth
         pos.append(min(pos[-1] + step, radius_mm + fine_mm) if pos[-1] + step > radius_mm else pos[-1] + step)
     pos = np.array(pos)
@@ -113,7 +134,9 @@ class _Mesh:
 def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
     """Tetrahedral mesh of the skin + gel disc (see module notes). Rest positions in the sensor frame."""
     T, G, R = design.skin.thickness_mm, design.optics.gel_thickness_mm, design.gel.radius_mm
-    ax = _axis(spec.fine_mm, spec.fine_half_mm, spec.growth, R, spec.core_mm, spec.core_half_mm)
+    edge = spec.edge_drop_mm > 0
+    ax = _axis(spec.fine_mm, spec.fine_half_mm, spec.growth, R, spec.core_mm, spec.core_half_mm,
+               spec.edge_start_mm if edge else None, spec.edge_mm)
     zs = [0.0] + [-T * (k + 1) / spec.skin_layers for k in range(spec.skin_layers)]
     zs += [-T - g for g in spec.gel_levels_mm if g < G - 1e-6] + [-T - G]
     zl = np.array(sorted(zs))                      # ascending: bottom first
@@ -174,7 +197,33 @@ def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
         zb = -(T + G)
         frac = np.clip((nodes[:, 2] - zb) / (-T - zb), 0.0, 1.0)   # 1 in the skin layer, 0 at the window
         nodes[:, 2] += design.dome_z_mm(nodes[:, :2]) * frac
+    if edge:
+        shift = _edge_z_mm(nodes, pinned, top, spec, T, G)
+        # every marker's pin stands in a skin cell of the flat top (within EDGE_MARKER_TOL_MM), so the rest
+        # markers stay where the design puts them
+        xy = design.rest_markers_mm()[:, :2]
+        i = np.clip(np.searchsorted(ax, xy[:, 0]), 1, nx - 1)
+        j = np.clip(np.searchsorted(ax, xy[:, 1]), 1, nx - 1)
+        lift = np.zeros((nx, nx))
+        lift[used_xy] = np.abs(shift[gid[:, :, nz - 1][used_xy]])
+        cell = np.max([lift[i - a, j - b] for a in (0, 1) for b in (0, 1)], axis=0)
+        if np.any(cell > EDGE_MARKER_TOL_MM):
+            raise PhysicsError(f"design {design.name}: markers out to r = {design.pattern_radius_mm():.2f} mm lie in "
+                               f"skin cells on the rounded edge (edge_start_mm = {spec.edge_start_mm:g})")
+        nodes[:, 2] += shift
     return _Mesh(nodes, tets_skin, tets_gel, pinned, top, top_faces)
+
+
+def _edge_z_mm(nodes: np.ndarray, pinned: np.ndarray, top: np.ndarray, spec: MeshSpec, T: float, G: float) -> np.ndarray:
+    """Vertical shift (V,) mm of the rounded edge: 0 inside ``edge_start_mm``, ``-edge_drop_mm`` from the innermost
+    clamped outer vertex on (the mount's top), a smoothstep between (level with the flat top where it starts and
+    with the mount where it ends); full in the skin layer, tapering linearly to 0 at the window."""
+    r = np.hypot(nodes[:, 0], nodes[:, 1])
+    r1 = float(r[top][pinned[top]].min())
+    t = np.clip((r - spec.edge_start_mm) / (r1 - spec.edge_start_mm), 0.0, 1.0)
+    zb = -(T + G)
+    frac = np.clip((nodes[:, 2] - zb) / (-T - zb), 0.0, 1.0)
+    return -spec.edge_drop_mm * t * t * (3.0 - 2.0 * t) * frac
 
 
 def _face_contact_faces(mesh: _Mesh) -> np.ndarray:

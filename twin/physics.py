@@ -7,7 +7,9 @@ path the robot follows, checkpoints, MuJoCo's warnings and the read-out of the t
 * :mod:`twin.model` — the MjSpec model built from it (flexes, contact, mass scaling, nodal volumetric
   stiffness) and the per-process cache of compiled models;
 * :mod:`twin.stick` — friction: Coulomb's law as stick constraints with a return map;
-* :mod:`twin.solve` — the settle criterion and the direct quasi-static solve at a pose.
+* :mod:`twin.solve` — the settle criterion and the direct quasi-static solve at a pose;
+* :mod:`twin.readout` — what the current state says (vertices, markers, contact, physics validity, the
+  truth), a base of :class:`SkinSim` that reads the state and never steps or changes it.
 
 Reaching a pose: :meth:`SkinSim.move_to` follows the robot's path in small increments (holding while a
 contact lags); :meth:`SkinSim.solve_at` places the indenter at the pose directly, warm-starts the mesh
@@ -29,15 +31,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.design import SensorDesign
-from pipeline.types import HeightMap
 from twin import model as _model, solve, stick, units, volumetric
 from twin.indenters import Indenter
-from twin.mesh import AXIS_CONTACT_MESH, MeshSpec, PhysicsError, build_mesh, embed_pins, pin_markers
+from twin.mesh import AXIS_CONTACT_MESH, MeshSpec, PhysicsError, build_mesh, embed_pins
 from twin.model import _BIT_FACES, _BIT_SPHERES, _FLIP
 from twin.solve import DIRECT_ABORT_MM, DIRECT_ACCEPT_MM, SETTLE_CONSECUTIVE, SETTLE_DAMPED_STEPS, \
     SETTLE_MAX_STEPS, SETTLE_TOL_MM, SettleStats
-from twin.truth import Truth
-from twin.validity import FrameValidity, frame_validity, rim_overlap_mm, skin_penetration
+from twin.readout import SkinReadout
 
 # re-exported from twin.mesh and twin.solve: what a caller of SkinSim passes it, gets back or catches
 __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm", "DIRECT_ACCEPT_MM",
@@ -76,7 +76,7 @@ def max_depth_mm(design: SensorDesign) -> float:
     return design.optics.gel_thickness_mm - design.pins.height_mm - DEPTH_MARGIN_MM
 
 
-class SkinSim:
+class SkinSim(SkinReadout):
     """The skin module in MuJoCo with one indenter on a mocap "robot".
 
     Parameters
@@ -342,77 +342,3 @@ class SkinSim:
         """MuJoCo warning counters that are non-zero (name → count)."""
         names = [self._mj.mjtWarning(i).name for i in range(len(self.data.warning))]
         return {n: int(w.number) for n, w in zip(names, self.data.warning) if w.number}
-
-    # ----- read-out -----------------------------------------------------------------------
-    def nodes_mm(self) -> np.ndarray:
-        """Current positions of all mesh vertices, sensor frame (V, 3) mm."""
-        V = len(self.mesh.nodes_mm)
-        return units.m_to_mm(self.data.flexvert_xpos[:V]) * _FLIP
-
-    def skin_vertices_mm(self) -> np.ndarray:
-        """Deformed outer skin surface vertices (Vt, 3), sensor frame; faces: ``mesh.top_faces``."""
-        return self.nodes_mm()[self.mesh.top]
-
-    def markers(self) -> tuple[np.ndarray, np.ndarray]:
-        """Marker face centres (N, 3) mm and unit pin axes (N, 3), sensor frame, canonical order."""
-        return pin_markers(self.nodes_mm(), self._pins, self.design.pins.height_mm)
-
-    def indenter_heightmap(self, *, spacing_mm: float = 0.2) -> HeightMap:
-        """Indenter contact surface in the sensor frame at the current pose."""
-        x, y, depth, yaw = self.pose
-        return self.indenter.sensor_heightmap(x, y, depth, yaw, half_mm=self.design.gel.radius_mm + 2.0,
-                                              spacing_mm=spacing_mm)
-
-    def indenter_z_at(self, xy_mm: np.ndarray) -> np.ndarray:
-        """Indenter surface sensor z (mm) above sensor points (N, 2); NaN off the part."""
-        from twin.indenters import sensor_to_indenter_xy
-
-        x, y, depth, yaw = self.pose
-        xi, yi = sensor_to_indenter_xy(xy_mm[:, 0], xy_mm[:, 1], x, y, yaw)
-        return self.indenter.top_mm - self.indenter.height(xi, yi) - depth
-
-    def touching(self) -> np.ndarray:
-        """Mesh indices of the outer-surface vertices whose contact sphere touches the indenter."""
-        out = set()
-        for i in range(self.data.ncon):
-            c = self.data.contact[i]
-            for gid in c.geom:
-                if int(gid) in self._top_geom and c.dist < 1e-5:
-                    out.add(self._top_geom[int(gid)])
-        return np.array(sorted(out), dtype=np.int64)
-
-    def gap_mm(self) -> np.ndarray:
-        """Indenter − skin height (mm) at touching vertices (positive: a gap, negative: penetration)."""
-        idx = self.touching()
-        X = self.nodes_mm()[idx]
-        return self.indenter_z_at(X[:, :2]) - X[:, 2]
-
-    def contact_force_n(self) -> float:
-        """Total force the indenter exerts on the skin along the press direction (N).
-
-        Summed from the constraint forces on the vertex DOFs (the only constraints are the
-        skin–indenter contacts), along world +z = sensor −z.
-        """
-        qz = self.data.qfrc_constraint[:3 * len(self._free)][2::3]
-        return float(np.sum(qz))
-
-    def validity(self, *, settled: bool) -> FrameValidity:
-        """Physical validity of the current state (:mod:`twin.validity`): the outer skin's penetration
-        into the indenter's true surface at vertices, face centroids, edge midpoints and the indenter's
-        own 0.1 mm samples over the deformable skin (the clamped rim is the rigid mount: how far the
-        indenter reaches below it is recorded as ``rim_overlap_mm``); the contact force; ``settled``;
-        MuJoCo's warning counters so far."""
-        top = self.skin_vertices_mm()
-        free = ~self.mesh.pinned[self.mesh.top]
-        pen = skin_penetration(top, self.mesh.top_faces, self.indenter_z_at, free=free)
-        return frame_validity(pen, contact_force_n=self.contact_force_n(), settled=settled,
-                              mujoco_warnings=self.warnings(), rim_overlap=rim_overlap_mm(top, ~free, self.indenter_z_at))
-
-    def truth(self, *, settled: bool | None = None) -> Truth:
-        """Truth of the current state (sensor frame, mm); with ``settled`` given, its physics validity
-        (:meth:`validity`) is recorded in it."""
-        xyz, axis = self.markers()
-        x, y, depth, yaw = self.pose
-        val = None if settled is None else self.validity(settled=settled).to_dict()
-        return Truth(np.arange(len(xyz)), xyz, axis, self.skin_vertices_mm(), self.mesh.top_faces,
-                     self.indenter_heightmap(), np.array([x, y, -depth, yaw]), val)

@@ -116,7 +116,12 @@ def execute(sim: SkinSim, motion: Motion, *, progress=None, direct: bool = True)
     # vertex contacts only; the fallback is recorded on the sim and each frame's own validity check
     # reports what that costs.
     start = sim.checkpoint()
-    out = _execute(sim, motion, progress, direct, stop_if_unstable=start.warnings)
+    try:
+        out = _execute(sim, motion, progress, direct, stop_if_unstable=start.warnings)
+    except sim._mj.FatalError:
+        # a solve that failed mid-settle can diverge before the warning is checked: the vertices fly apart and
+        # MuJoCo's collision arena overflows (measured on a 2π/5 sine pressed 5 mm) - the same failed solve
+        out = None
     if out is not None:
         return out
     sim.restore(start)

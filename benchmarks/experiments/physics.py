@@ -17,6 +17,9 @@ A rigid sphere (radius ``R``) is pressed 0.25-3 mm into the skin module on the s
   conformity (the frame's face-level penetration, :mod:`twin.validity`).
 
 Materials: E and ν from the design file (``sim_assets/designs``; sources in ``twin/materials.py``).
+
+One experiment module (just over ~400 lines) on purpose: the cases, the reference solution, the scoring,
+findings and figure of one comparison, in the order :func:`run` calls them.
 """
 
 from __future__ import annotations
@@ -140,7 +143,7 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
 )
 def run(ctx: Context) -> Result:
     """Sphere pressed into the skin module: force-depth vs the bonded-layer Hertz solution, symmetry, convergence."""
-    design = ctx.design("hexagon127")
+    design = ctx.design()
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(1.0, 3.0))]
     resolutions = ctx.param("resolutions", RESOLUTIONS, quick=RESOLUTIONS[1:])   # quick: production vs finest
     conv_depth = float(ctx.param("convergence_depth", 2.0))

@@ -6,7 +6,7 @@ displacement |P'_t1 P'_t2| is linear with slope n_gel = 1.51 (acrylic 1.57, elas
 
 Here the twin renders the board through its exact optical stack at each depth (per-trial pose jitter
 from the seeded rng), the pipeline's stages (detect → match → triangulate) measure the apparent
-depth, and :func:`pipeline.geometry.refraction.fit_refractive_index` fits n. The slope the twin's optics
+depth, and :func:`pipeline.geometry.index_fit.fit_refractive_index` fits n. The slope the twin's optics
 imply is computed independently: the board's true marker points projected with the twin's exact
 ray tracer (``twin.optics.project_exact``, no image), triangulated by the pipeline without refraction
 correction, fitted the same way. The depth error of the paper's linear correction and of the exact
@@ -73,9 +73,9 @@ def board_markers(design, sensor_from_board: np.ndarray) -> np.ndarray:
 )
 def run(ctx: Context) -> Result:
     """Skin-less marker-board press 0–8 mm: fitted n vs the twin's optics, linear vs exact depth error."""
-    from pipeline.geometry.refraction import fit_refractive_index
+    from pipeline.geometry.index_fit import fit_refractive_index
 
-    setup = ctx.sensor_setup(ctx.design("hexagon127"))
+    setup = ctx.sensor_setup(ctx.design())
     depths = [float(d) for d in ctx.param("depths", DEPTHS_MM, quick=(0.0, 2.0, 4.0, 6.0, 8.0))]
     trials = int(ctx.param("trials", TRIALS, quick=2))
     if depths[0] != 0.0:
@@ -156,7 +156,7 @@ def _implied_by_optics(setup, depths: list[float]):
     """What the twin's optics imply, with no image in between: exact projection → pinhole triangulation.
 
     Returns the fit and the apparent depth changes it was fitted to."""
-    from pipeline.geometry.refraction import fit_refractive_index
+    from pipeline.geometry.index_fit import fit_refractive_index
     from pipeline.geometry.triangulation import triangulate
     from pipeline.types import MarkerMatches
     from twin.optics import project_exact

@@ -138,7 +138,8 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _calibrate_refraction(args: argparse.Namespace) -> int:
     from pipeline.design import load_design
-    from pipeline.geometry.refraction import RefractionError, fit_index_from_press
+    from pipeline.geometry.index_fit import fit_index_from_press
+    from pipeline.geometry.refraction import RefractionError
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)
@@ -159,7 +160,8 @@ def _calibrate_refraction(args: argparse.Namespace) -> int:
 
 def _reconstruct(args: argparse.Namespace) -> int:
     from pipeline.design import load_design
-    from pipeline.runner import Reconstructor, reconstruct
+    from pipeline.batch import reconstruct
+    from pipeline.runner import Reconstructor
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)

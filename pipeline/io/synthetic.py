@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.geometry.refraction import project_through_stack
-from pipeline.types import FRAME_HEIGHT_PX, FRAME_WIDTH_PX, StereoCalibration, StereoFrame
+from pipeline.types import FRAME_HEIGHT_PX, FRAME_WIDTH_PX, StereoCalibration, StereoFrame, nominal_calibration
 
 __all__ = ["nominal_calibration", "synth_stereo_frame", "gaussian_press_markers", "BACKGROUND_GREY",
            "MARKER_GREY"]
@@ -22,20 +22,6 @@ BACKGROUND_GREY = 25
 MARKER_GREY = 225
 _SHIFT_BITS = 4            # cv2 drawing sub-pixel precision: 1/16 px
 _BLUR_SIGMA_PX = 0.7       # "a touch of blur": optics are never perfectly sharp
-
-
-def nominal_calibration(design: SensorDesign) -> StereoCalibration:
-    """The calibration the design's nominal cameras would have.
-
-    K, D from ``design.cameras``; (R, T) with X_right = R X_left + T from the two nominal
-    sensor_from_camera poses; ``sensor_from_left`` = the nominal left pose.
-    """
-    poses = design.camera_poses()
-    right_from_left = np.linalg.inv(poses["right"]) @ poses["left"]
-    c = design.cameras
-    return StereoCalibration(K1=c.left.K, D1=c.left.D, K2=c.right.K, D2=c.right.D, R=right_from_left[:3, :3],
-                             T=right_from_left[:3, 3], image_size=(c.width_px, c.height_px),
-                             sensor_from_left=poses["left"], rms_px=0.0)
 
 
 def gaussian_press_markers(design: SensorDesign, depth_mm: float, *, sigma_mm: float = 4.0,

@@ -6,10 +6,10 @@ results keep their shape (``(0, 2)``, never ``None``). Units ride in names (``_m
 pixel. 3-D output is in the sensor frame documented in :mod:`pipeline.design` (mm).
 
 Modules: :mod:`.frames` (frames, blobs, matches, clouds, surfaces and the array checks) and
-:mod:`.calibration` (:class:`StereoCalibration` and its YAML files).
+:mod:`.calibration` (:class:`StereoCalibration`, its YAML files and :func:`nominal_calibration`).
 """
 
-from pipeline.types.calibration import CalibrationError, StereoCalibration, lens_folds_over
+from pipeline.types.calibration import CalibrationError, StereoCalibration, lens_folds_over, nominal_calibration
 from pipeline.types.frames import (FRAME_HEIGHT_PX, FRAME_WIDTH_PX, Blobs, DataError, HeightMap, MarkerCloud,
                                    MarkerMatches, SkinSurface, StereoFrame, checked_array)
 
@@ -27,4 +27,5 @@ __all__ = [
     "CalibrationError",
     "checked_array",
     "lens_folds_over",
+    "nominal_calibration",
 ]

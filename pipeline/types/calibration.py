@@ -293,6 +293,23 @@ class StereoCalibration:
 MAX_CALIB_FILE_BYTES = 1 << 20
 
 
+def nominal_calibration(design) -> StereoCalibration:
+    """The calibration the design's nominal cameras have: exactly the twin's cameras, and what a sensor
+    built to its drawing would be calibrated to.
+
+    K, D from ``design.cameras``; (R, T) with X_right = R X_left + T from the two nominal
+    ``design.camera_poses()`` (sensor_from_camera); ``sensor_from_left`` = the nominal left pose;
+    ``rms_px`` = 0. (``design``: a :class:`pipeline.design.SensorDesign`, read by attribute: the types sit
+    below the design package and do not import it.)
+    """
+    poses = design.camera_poses()
+    right_from_left = np.linalg.inv(poses["right"]) @ poses["left"]
+    c = design.cameras
+    return StereoCalibration(K1=c.left.K, D1=c.left.D, K2=c.right.K, D2=c.right.D, R=right_from_left[:3, :3],
+                             T=right_from_left[:3, 3], image_size=(c.width_px, c.height_px),
+                             sensor_from_left=poses["left"], rms_px=0.0)
+
+
 def _first_line(exc: BaseException) -> str:
     """The useful part of a library's message: OpenCV's ``error: (-215:...) what in function f``
     becomes ``what``; an exception without text gives its type name."""

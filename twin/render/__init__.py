@@ -8,7 +8,7 @@ Pipeline of one view (camera ``side``), one module per step:
    *apparent* position for that camera (:func:`twin.optics.apparent_points`, exact Snell per vertex); each
    camera has its own vertex buffers. Also the true calibration and in-view chessboard poses.
 3. :mod:`~twin.render.renderer` — a flat-shaded (unlit) pinhole render with a field wider than the output,
-   4x MSAA, both views side by side in ONE framebuffer (:class:`twin.gl.FlatRenderer`: one clear, resolve
+   4x MSAA, both views side by side in ONE framebuffer (:class:`twin.render.flat.FlatRenderer`: one clear, resolve
    and read-back).
 4. :mod:`~twin.render.lens` — lens distortion: one ``cv2.remap`` for the pair with maps precomputed once:
    for each output pixel the ideal normalised ray (exact inverse of the OpenCV model,

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from pipeline.design import SensorDesign
-from pipeline.types import StereoCalibration
+from pipeline.types import StereoCalibration, nominal_calibration
 from twin.gl import RenderError
 from twin.optics import FlatStack, apparent_points, project_exact
 from twin.render.scene import ChessboardSpec, chessboard_corners_mm
@@ -30,18 +30,9 @@ def apparent(pts: np.ndarray, camera_centre: np.ndarray, stack: FlatStack, throu
 
 
 def true_calibration(design: SensorDesign) -> StereoCalibration:
-    """The stereo calibration that is exactly true for the twin's cameras (OpenCV conventions).
-
-    ``X_right = R X_left + T`` from the nominal ``design.camera_poses()`` (sensor_from_camera), K and D
-    from ``design.cameras``, ``sensor_from_left`` the left pose, ``rms_px = 0``.
-    """
-    poses = design.camera_poses()
-    right_from_left = np.linalg.inv(poses["right"]) @ poses["left"]
-    c = design.cameras
-    return StereoCalibration(K1=c.left.K, D1=c.left.D, K2=c.right.K, D2=c.right.D,
-                             R=right_from_left[:3, :3], T=right_from_left[:3, 3],
-                             image_size=(c.width_px, c.height_px), sensor_from_left=poses["left"],
-                             rms_px=0.0)
+    """The stereo calibration that is exactly true for the twin's cameras (OpenCV conventions): the twin
+    places its cameras at the design's nominal poses, so it is :func:`pipeline.types.nominal_calibration`."""
+    return nominal_calibration(design)
 
 
 def _board_in_view(design: SensorDesign, T: np.ndarray, spec: ChessboardSpec, margin_px: float) -> bool:

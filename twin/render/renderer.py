@@ -12,7 +12,8 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.types import StereoFrame
-from twin.gl import FlatRenderer, RenderError
+from twin.gl import RenderError
+from twin.render.flat import FlatRenderer
 from twin.optics import FlatStack
 from twin.render.lens import QUALITY_SCALE, SIDES, ZNEAR_MM, distort_and_shade, make_lens
 from twin.render.photometry import (BACKGROUND_BGR, LAB_BACKGROUND_BGR, MARKER_BGR, MARKER_SIDE_BGR, PIN_BGR,

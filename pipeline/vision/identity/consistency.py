@@ -56,7 +56,7 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
         e = 0
         if fan[s, 0] >= 0:
             e = _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring,
-                          near, near_d2)
+                          near, near_d2, acc)
         if e == 1:
             st = 0
         elif e == _NEED_SEARCH:

@@ -8,6 +8,7 @@ import math
 import numba
 
 from pipeline.vision.identity.constants import _NEED_SEARCH, FAN_DEGENERATE, FAN_MAX_GAP_DEG, FAN_MAX_STRETCH
+from pipeline.vision.identity.fits import _fit_sums
 from pipeline.vision.nearest import nearest
 
 
@@ -36,7 +37,8 @@ def _fan_turns_once(p, c, ring, m):
 
 
 @numba.njit(cache=True)
-def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near, near_d2):
+def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near, near_d2,
+              acc):
     """Is blob ``b`` the vertex of an intact image of its slot's design fan (deformed-ring
     certification)? Every design neighbour of the closed fan ``fan[s]`` is identified; their blobs
     surround ``b`` counter-clockwise in the design's order, turning once (no fold, no swap, no
@@ -51,8 +53,9 @@ def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pit
     :func:`use_triangulation`; nothing else touches ``b``, outside the pattern included).
 
     Returns 1 (intact), 0 (not), or :data:`_NEED_SEARCH` when only the blob search of the emptiness
-    test is left and ``search`` (blob searches allowed) is False. ``ring``, ``near``, ``near_d2``:
-    work arrays (fan width, and >= :data:`FAN_QUERY`)."""
+    test is left and ``search`` (blob searches allowed) is False. ``ring``, ``near``, ``near_d2``, ``acc``:
+    work arrays (fan width, >= :data:`FAN_QUERY`, and (12,) for the sums of
+    :func:`~pipeline.vision.identity.fits._fit_sums`, which the fan's affine map shares)."""
     K = fan.shape[1]
     if fan[s, 0] < 0:
         return 0
@@ -83,23 +86,10 @@ def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pit
             return 0
     # the neighbours' affine map (least squares, design relative to slot s, image relative to b)
     # predicts b
-    sx = sy = su = sv = sxx = sxy = syy = sux = suy = svx = svy = 0.0
-    for i in range(m):
-        x = xy[fan[s, i], 0] - xy[s, 0]
-        y = xy[fan[s, i], 1] - xy[s, 1]
-        u = pts[ring[i], 0] - pts[b, 0]
-        v = pts[ring[i], 1] - pts[b, 1]
-        sx += x
-        sy += y
-        su += u
-        sv += v
-        sxx += x * x
-        sxy += x * y
-        syy += y * y
-        sux += u * x
-        suy += u * y
-        svx += v * x
-        svy += v * y
+    _fit_sums(xy, pts, fan[s], ring, m, xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1], acc)
+    sx, sy, su, sv = acc[1], acc[2], acc[3], acc[4]
+    sxx, sxy, syy = acc[5], acc[6], acc[7]
+    sux, suy, svx, svy = acc[8], acc[9], acc[10], acc[11]
     mx, my, mu, mv = sx / m, sy / m, su / m, sv / m
     sxx -= m * mx * mx
     sxy -= m * mx * my

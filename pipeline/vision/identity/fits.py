@@ -1,5 +1,16 @@
 """Local affine fits design -> image: the sums, the leave-one-out downdate and the tables of their
-design half (:func:`_loo_design`), shared by every consistency test of the certainty rule."""
+design half (:func:`_loo_design`), shared by every consistency test of the certainty rule.
+
+The frame-to-frame map (:func:`pipeline.vision.identity.temporal._predict`) fits a local affine map too,
+but not with these sums, on purpose: here one neighbourhood's raw sums (:func:`_fit_sums`, one pass, about
+an origin) serve every leave-one-out fit by subtracting one point, and their design half is tabulated per
+design, so only raw sums can be downdated and shared; the collinearity test is on the total scatter in
+design separations (:data:`COLLINEAR_SCATTER`). The temporal fit maps a marker's previous-frame
+neighbours to their motion, once per marker with the marker itself never among them, so nothing is
+downdated: it takes the means first and then the centred moments (two passes, no cancellation), and
+tests the spread as a per-point standard deviation in the previous frame's local spacing. The two give
+the same map in exact arithmetic but round differently, and their collinearity tests differ, so one
+routine for both would move borderline accept/reject decisions."""
 
 from __future__ import annotations
 

@@ -100,7 +100,15 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual):
     correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
     usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
     deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
-    local spacings; the previous position where not usable."""
+    local spacings; the previous position where not usable.
+
+    Not the sums of :mod:`pipeline.vision.identity.fits` on purpose: those are one-pass raw sums about an
+    origin, kept so that every leave-one-out fit of a design neighbourhood is one subtraction and their
+    design half can be tabulated per design; this fit is made once per marker (the marker is never among
+    its own neighbours), so it takes the means first and then the centred moments (two passes, no
+    cancellation) and tests the spread per point in local spacings (``spread``), where the design fits
+    test the total scatter. Same map in exact arithmetic, different rounding and collinearity test: one
+    routine for both would move borderline decisions."""
     m, k = nb.shape
     pred = P.copy()
     ok = np.zeros(m, np.bool_)

@@ -1,0 +1,245 @@
+"""The README's figures, written from benchmark records (``stereotactip report DIR --readme README.md``).
+
+A generated block in the README is the text between two marker lines::
+
+    <!-- report:NAME:begin (written by `stereotactip report DIR --readme README.md --block NAME`; do not edit) -->
+    ...
+    <!-- report:NAME:end -->
+
+and :data:`BLOCKS` names what each block is made of: the gate figures of a quick run (``gate-figures``, every
+metric ``benchmarks/thresholds.toml`` guards), the twin's speed and fidelity table (``twin-speed``, from a
+``bench twin`` record) and the identification coverage table (``identification-coverage``, from a
+``bench identification`` record). Each block's first line names the results directory it was written from;
+the records behind the README's headline blocks are kept in ``docs/records/`` so that
+``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+from benchmarks.report import _fmt
+from benchmarks.results import ResultsError, load_records
+from benchmarks.thresholds import bounds_text, check, load_thresholds
+
+__all__ = ["BLOCKS", "ReadmeBlock", "begin_marker", "end_marker", "render_block", "update_readme",
+           "readme_blocks", "gate_figures_markdown", "README_BEGIN", "README_END"]
+
+Records = Mapping[str, Mapping[str, Any]]
+
+
+@dataclass(frozen=True)
+class ReadmeBlock:
+    """One generated README block: its ``name`` (the marker's), the ``experiment`` whose record it needs (None:
+    every quick record in the directory) and ``body(records, source) -> str`` the Markdown between the markers."""
+
+    name: str
+    experiment: str | None
+    body: Callable[[Records, str], str]
+    about: str
+
+
+def begin_marker(name: str) -> str:
+    """The line that opens block ``name`` (the gate figures keep their original, shorter command)."""
+    command = "stereotactip report DIR --readme README.md" + ("" if name == "gate-figures" else f" --block {name}")
+    return f"<!-- report:{name}:begin (written by `{command}`; do not edit) -->"
+
+
+def end_marker(name: str) -> str:
+    return f"<!-- report:{name}:end -->"
+
+
+README_BEGIN = begin_marker("gate-figures")
+README_END = end_marker("gate-figures")
+
+
+def _value(rec: Mapping[str, Any], metric: str, digits: int = 3) -> str:
+    m = (rec.get("metrics") or {}).get(metric) or {}
+    unit = m.get("unit", "")
+    return f"{_fmt(m.get('value'), digits)} {unit if unit != '1' else ''}".strip()
+
+
+def _provenance(rec: Mapping[str, Any], source: str) -> str:
+    """Where a block's figures come from: directory, commit, quick or full, calibration mode and seed."""
+    mode = (rec.get("calibration") or {}).get("mode", "oracle")
+    return (f"`{rec['experiment']}` record in `{source}` (commit {str(rec.get('commit', 'unknown'))[:10]}, "
+            f"{'quick' if rec.get('quick') else 'full'} run, calibration {mode}, seed {rec.get('seed')})")
+
+
+# ----- gate-figures: every metric the CI gate guards ---------------------------------------------
+
+def gate_figures_markdown(records: Records, source: str) -> str:
+    """The quick gate's figures as a Markdown table: every metric ``benchmarks/thresholds.toml`` guards, the
+    value the records in ``source`` give it, its golden and sanity bounds and whether it passes."""
+    thresholds = load_thresholds()
+    recs = {n: r for n, r in sorted(records.items()) if r.get("quick")}
+    if not recs:
+        raise ResultsError(f"{source}: no quick records: the gate figures come from a --quick run")
+    commits = sorted({str(r.get("commit", "unknown"))[:10] for r in recs.values()})
+    modes = sorted({(r.get("calibration") or {}).get("mode", "oracle") for r in recs.values()})
+    violations = {(v.experiment, v.metric) for v in check(recs, thresholds, experiments=list(recs))}
+    lines = [f"Quick gate figures from `{source}` (commit {', '.join(commits)}, calibration "
+             f"{', '.join(modes)}, seed {', '.join(sorted({str(r.get('seed')) for r in recs.values()}))}):", "",
+             "| experiment | metric | this run | golden | sanity | kind | gate |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for exp, table in thresholds.items():
+        rec = recs.get(exp)
+        if rec is None:
+            continue
+        mode = (rec.get("calibration") or {}).get("mode", "oracle")
+        for th in table.values():
+            if th.mode is not None and th.mode != mode:
+                continue
+            m = rec.get("metrics", {}).get(th.metric) or {}
+            unit = m.get("unit", "")
+            shown = th.metric if th.mode is None else f"{th.metric} ({th.mode})"
+            value = f"{_fmt(m.get('value'))} {unit if unit != '1' else ''}".strip()
+            golden = bounds_text(th.golden_min, th.golden_max, table=True)
+            sanity = bounds_text(th.min, th.max, table=True)
+            ok = "**fails**" if (exp, shown) in violations else "passes"
+            lines.append(f"| {exp} | {shown} | {value} | {golden} | {sanity} | {th.kind or '—'} | {ok} |")
+    return "\n".join(lines)
+
+
+# ----- twin-speed: the twin's headline figures ----------------------------------------------------
+
+def _twin_speed(records: Records, source: str) -> str:
+    """Seconds per press, ms per frame, gap and penetration of one ``bench twin`` record against the goals
+    :data:`benchmarks.twin_bench.GOALS` (the one place they are set)."""
+    from benchmarks.twin_bench import GOALS
+
+    rec = records["twin"]
+    metric = lambda name: ((rec.get("metrics") or {}).get(name) or {}).get("value")    # noqa: E731
+
+    def verdict(*pairs: tuple[str, str]) -> str:
+        met = [metric(m) is not None and metric(m) <= GOALS[g] for m, g in pairs]
+        return "met" if all(met) else "**not met**"
+
+    dofs = metric("mesh_dofs")
+    pen_goal = f"≤ {GOALS['penetration_max_mm']:g} mm"
+    rows = [
+        (f"5 mm press to equilibrium (default design, {_fmt(dofs)} dofs), the captured pose solved directly",
+         f"{_value(rec, 'press_s_median')} median; the followed 1 mm/s path {_value(rec, 'followed_press_s')}, "
+         f"its markers within {_value(rec, 'direct_vs_followed_marker_max_mm')} of the direct equilibrium",
+         f"≤ {GOALS['press_s']:g} s — {verdict(('press_s_median', 'press_s'))}"),
+        ("rendered stereo frame (flat shading, 640×480 × 2)", f"{_value(rec, 'frame_ms_median')} median",
+         f"≤ {GOALS['frame_ms']:g} ms — {verdict(('frame_ms_median', 'frame_ms'))}"),
+        ("skin–indenter gap on σ² = 10 mm² (contacting vertices)",
+         f"{_value(rec, 'gap_max_mm')} max, {_value(rec, 'gap_rms_mm')} RMS",
+         f"≤ {GOALS['gap_max_mm']:g} mm — {verdict(('gap_max_mm', 'gap_max_mm'))}"),
+        ("outer skin inside the indenter, face level (σ² = 10, 5 mm)",
+         f"{_value(rec, 'penetration_max_mm')} (vertices {_value(rec, 'penetration_vertex_max_mm')}); with face "
+         f"contact {_value(rec, 'face_contact_penetration_max_mm')} ({_value(rec, 'face_contact_press_s')})",
+         f"{pen_goal} — {verdict(('penetration_max_mm', 'penetration_max_mm'))} on the default mesh"),
+        ("the same on the σ² = 5/3 tip (5 mm)",
+         f"{_value(rec, 'sharp_penetration_max_mm')} ({_value(rec, 'sharp_press_s')})",
+         f"{pen_goal}, ≤ {GOALS['sharp_press_s']:g} s — "
+         f"{verdict(('sharp_penetration_max_mm', 'penetration_max_mm'), ('sharp_press_s', 'sharp_press_s'))}"),
+        ("5 mm press on the axis contact mesh (0.5 mm core + face contact), σ² = 10 / 5/3",
+         f"{_value(rec, 'axis_mesh_penetration_max_mm')} / {_value(rec, 'axis_mesh_sharp_penetration_max_mm')} "
+         f"inside; apex {_value(rec, 'axis_mesh_apex_beyond_tip_mm')} beyond the σ² = 10 tip; "
+         f"{_value(rec, 'axis_mesh_press_s')} / {_value(rec, 'axis_mesh_sharp_press_s')}",
+         f"{pen_goal} — {verdict(('axis_mesh_penetration_max_mm', 'penetration_max_mm'), ('axis_mesh_sharp_penetration_max_mm', 'penetration_max_mm'))}; "
+         f"≤ {GOALS['axis_mesh_press_s']:g} / {GOALS['axis_mesh_sharp_press_s']:g} s — "
+         f"{verdict(('axis_mesh_press_s', 'axis_mesh_press_s'), ('axis_mesh_sharp_press_s', 'axis_mesh_sharp_press_s'))}"),
+    ]
+    lines = [f"Twin figures from the {_provenance(rec, source)}; speed is this machine's (2 shared cores):", "",
+             "| what | measured | goal |", "| --- | --- | --- |"]
+    lines += [f"| {what} | {measured} | {goal} |" for what, measured, goal in rows]
+    return "\n".join(lines)
+
+
+# ----- identification-coverage: coverage per condition and pattern --------------------------------
+
+# The README's words for the benchmark's conditions (benchmarks.experiments.identification.CONDITIONS).
+_CONDITION_LABELS = {
+    "defects_0": "clean", "defects_1": "1 % missing + 1 % spurious", "defects_3": "3 % + 3 %",
+    "defects_5": "5 % + 5 %", "defects_10": "10 % + 10 %", "occlusion_15": "contiguous 15 % patch occluded",
+    "jitter_30": "centre jitter 0.3 separations", "rotation_30": "turned ±30°",
+    "press_stereo": "Gaussian press 1–5 mm, stereo, 3 % + 3 % per view",
+}
+_DESIGN_LABELS = {"hexagon61_sep354": "hex 61", "hexagon127": "hex 127", "hexagon217_sep180": "hex 217",
+                  "square121": "sq 121", "circular217_dome": "circ 217"}
+
+
+def _identification_coverage(records: Records, source: str) -> str:
+    """Wrong ids and mean coverage per condition (rows) and pattern (columns) of one ``bench identification``
+    record's ``conditions`` table."""
+    rec = records["identification"]
+    rows = (rec.get("tables") or {}).get("conditions") or []
+    if not rows:
+        raise ResultsError(f"{source}: the identification record has no conditions table")
+    designs = list(dict.fromkeys(r["design"] for r in rows))
+    conditions = [c for c in _CONDITION_LABELS if any(r["condition"] == c for r in rows)]
+    conditions += [c for c in dict.fromkeys(r["condition"] for r in rows) if c not in conditions]
+    cell = {(r["condition"], r["design"]): r for r in rows}
+    trials = sorted({int(r["trials"]) for r in rows})
+    lines = [f"Identification from the {_provenance(rec, source)}: {', '.join(map(str, trials))} seeded trials per "
+             f"condition and pattern, {sum(int(r['trials']) for r in rows):,} in all; coverage = present markers "
+             "given their correct id, mean over trials:", "",
+             "| condition | wrong ids | " + " | ".join(_DESIGN_LABELS.get(d, d) for d in designs) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in designs) + " |"]
+    for c in conditions:
+        cov = [f"{100 * cell[c, d]['coverage_mean']:.2f} %" if (c, d) in cell else "—" for d in designs]
+        wrong = sum(int(cell[c, d]["wrong_ids"]) for d in designs if (c, d) in cell)
+        lines.append(f"| {_CONDITION_LABELS.get(c, c)} | {wrong} | " + " | ".join(cov) + " |")
+    return "\n".join(lines)
+
+
+BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
+    ReadmeBlock("gate-figures", None, gate_figures_markdown, "every metric the CI gate guards, from a quick run"),
+    ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
+    ReadmeBlock("identification-coverage", "identification", _identification_coverage,
+                "wrong ids and coverage per defect condition and pattern"),
+)}
+
+
+def render_block(name: str, records: Records, source: str) -> str:
+    """Block ``name`` written from ``records`` (the results directory ``source``), marker lines included."""
+    block = BLOCKS.get(name)
+    if block is None:
+        raise ResultsError(f"README block {name!r}: unknown; known blocks: {', '.join(BLOCKS)}")
+    if block.experiment is not None and block.experiment not in records:
+        raise ResultsError(f"{source}: no {block.experiment!r} record: the {name} block is written from a "
+                           f"`stereotactip bench {block.experiment}` results directory")
+    return "\n".join([begin_marker(name), "", block.body(records, source), "", end_marker(name)])
+
+
+_BEGIN = re.compile(r"^<!-- report:([a-z0-9-]+):begin\b.*-->$", re.M)
+
+
+def readme_blocks(text: str) -> dict[str, str]:
+    """The generated blocks of a README's text, by name, marker lines included (as :func:`render_block`
+    writes them)."""
+    out = {}
+    for m in _BEGIN.finditer(text):
+        end = text.find(end_marker(m.group(1)), m.end())
+        if end >= 0:
+            out[m.group(1)] = text[m.start():end + len(end_marker(m.group(1)))]
+    return out
+
+
+def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("gate-figures",)) -> Path:
+    """Rewrite the named ``blocks`` of ``readme`` from the records in ``records_dir`` (atomically); everything
+    else is kept. Each block must stand exactly once, its begin line before its end line."""
+    from pipeline.io.atomic import atomic_write_text
+
+    readme = Path(readme)
+    try:
+        text = readme.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ResultsError(f"README {readme}: unreadable ({type(exc).__name__})") from None
+    records = load_records(Path(records_dir))
+    for name in blocks:
+        begin, end = begin_marker(name), end_marker(name)
+        if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+            raise ResultsError(f"README {readme}: needs exactly one {name} block, the line {begin!r} "
+                               f"followed by {end!r}")
+        head, rest = text.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        text = head + render_block(name, records, str(records_dir)) + tail
+    atomic_write_text(readme, text)
+    return readme
