@@ -258,8 +258,13 @@ class SkinSim(SkinReadout):
     def settle(self, *, tol_mm: float = SETTLE_TOL_MM, consecutive: int = SETTLE_CONSECUTIVE,
                max_steps: int = SETTLE_MAX_STEPS, abort=None,
                damped_steps: int = SETTLE_DAMPED_STEPS) -> SettleStats:
-        """Step until the markers are quasi-static (:func:`twin.solve.settle`)."""
-        return solve.settle(self.step, self.markers, self.model, tol_mm=tol_mm, consecutive=consecutive,
+        """Step until the markers are quasi-static (:func:`twin.solve.settle`). With friction the stick anchors
+        count as markers: a contact still sliding is not at equilibrium even when the markers barely move (a
+        0.3 mm slide at mu = 0.3 looked settled with the anchors still sliding, Q/P 0.385, relaxing to 0.31)."""
+        def with_anchors():
+            return (np.vstack([self.markers()[0], units.m_to_mm(self._stick_anchor)]),)
+        markers = with_anchors if len(self._stick_eq) else self.markers
+        return solve.settle(self.step, markers, self.model, tol_mm=tol_mm, consecutive=consecutive,
                             max_steps=max_steps, abort=abort, damped_steps=damped_steps)
 
     # ----- direct quasi-static solve ---------------------------------------------------------
