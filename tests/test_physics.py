@@ -512,14 +512,31 @@ def test_friction_sticks_where_cattaneo_mindlin_predicts_stick_and_does_not_cree
 
 @pytest.mark.slow
 def test_friction_below_the_stick_load_slides_at_coulombs_limit():
-    """At mu = 0.3, below the Q/P = 0.55 the same slide needs to stick, the contact slides as a whole: the
-    tangential force is mu P plus the lean of the normal forces (Q/P 0.03 at mu = 0): measured 0.353, asserted
-    within 0.3-0.36, and the skin under the tip lags the indenter (0.52 of the slide after settling; a sliding
-    contact keeps relaxing slowly while held, to 0.43 after 200 steps, as the sliding anchors move at most
-    STICK_MAX_SLIDE_MM a step)."""
+    """At mu = 0.3, below the Q/P = 0.55 the same slide needs to stick, the contact slides: the tangential load
+    is capped by mu P plus the lean of the normal forces (Q/P 0.03 at mu = 0), measured 0.317 once settled (the
+    stick anchors count in the settle criterion) and asserted within 0.25-0.36, and the skin under the tip lags
+    the indenter (0.58 of the slide after settling; a sliding contact keeps relaxing slowly while held, to 0.49
+    and Q/P 0.29 after 200 steps, as the sliding anchors move at most STICK_MAX_SLIDE_MM a step)."""
     _, settled, held, qp, converged = _slide(0.3)
-    assert converged and 0.3 <= qp <= 0.36, (qp, converged)
+    assert converged and 0.25 <= qp <= 0.36, (qp, converged)
     assert settled < 0.8 and held < 0.8, (settled, held)
+
+
+@pytest.mark.slow
+def test_friction_deep_press_settles_with_the_contact_carrying_the_normal_load():
+    """A 5 mm press of the σ² = 10 Gaussian at mu = 1 settles to equilibrium. The stuck vertices are tied to the
+    indenter in x and y only while their contacts carry the normal load; as point constraints that carried it too
+    (contacts switched off while stuck) the stuck skin sank 0.13 mm into the indenter and the vertices at the edge
+    of the contact were released and stuck again every few steps, so the press never settled (800 steps,
+    measured). Measured now: settled, ~110-150 vertices stuck, the outer vertices within 0.05 mm of the surface."""
+    from twin import robot
+
+    sim = SkinSim(load_design("hexagon127"), make_indenter("gaussian", h_mm=5, sigma2_mm2=10), friction=1.0)
+    (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0))
+    assert stats.converged and not stats.direct, stats
+    assert len(sim.stuck_vertices()) >= 50
+    assert sim.outer_penetration_mm() <= 0.06, sim.outer_penetration_mm()
+    assert sim.warnings() == {}
 
 
 def test_rounded_edge_keeps_the_flat_top_and_lowers_the_clamp_to_the_mount():

@@ -299,19 +299,22 @@ def test_surface_spheres_follow_a_crest_sharper_than_the_sphere():
 def test_face_contact_keeps_a_letters_edges_out_of_the_skin():
     """Letter 'G' (vertical 3 mm walls, 1.6 mm strokes) pressed 1, 2, 3 mm along the tracking path: with vertex
     contacts only its edges cut the 1.5 mm skin faces (0.3-0.9 mm, measured); with face contact and the edge
-    spheres every frame is valid (measured 0.000 / 0.000 / 0.018 mm, settled, no MuJoCo warning). (The flat
-    1.5 mm faces still lever vertices next to an edge off the letter's top: up to 0.35 mm at 3 mm, measured.)"""
+    spheres every frame is valid (measured 0.000 / 0.000 / 0.018 mm, settled, no MuJoCo warning), and so it is
+    with friction (mu = 1, the tracking experiment's: 0.000 / 0.007 / 0.024 mm, settled). (The flat 1.5 mm faces
+    still lever vertices next to an edge off the letter's top: up to 0.35 mm at 3 mm, measured.)"""
     from pipeline.design import load_design
     from twin import robot
     from twin.indenters import make_indenter
     from twin.physics import MeshSpec, SkinSim
 
-    sim = SkinSim(load_design("hexagon127"), make_indenter("letter", char="G"), mesh=MeshSpec(face_contact=True))
-    motion = robot.Motion("G", (robot.Waypoint(0, 0, -1.0, capture=False),) +
-                          tuple(robot.Waypoint(0, 0, float(dz)) for dz in (1, 2, 3)))
-    out = robot.execute(sim, motion)
-    assert sim.face_contact and sim.face_contact_fallback is None
-    for _, stats, truth in out:
-        v = truth.validity
-        assert stats.converged and v["valid"], v["reasons"]
-        assert v["penetration_max_mm"] <= PENETRATION_MAX_MM
+    for friction in (0.0, 1.0):
+        sim = SkinSim(load_design("hexagon127"), make_indenter("letter", char="G"), mesh=MeshSpec(face_contact=True),
+                      friction=friction)
+        motion = robot.Motion("G", (robot.Waypoint(0, 0, -1.0, capture=False),) +
+                              tuple(robot.Waypoint(0, 0, float(dz)) for dz in (1, 2, 3)))
+        out = robot.execute(sim, motion)
+        assert sim.face_contact and sim.face_contact_fallback is None
+        for _, stats, truth in out:
+            v = truth.validity
+            assert stats.converged and v["valid"], (friction, v["reasons"])
+            assert v["penetration_max_mm"] <= PENETRATION_MAX_MM

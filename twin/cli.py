@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Coulomb friction skin/indenter (default 0: frictionless). Silicone-type elastomers on hard "
                         "smooth polymers are usually quoted at mu ~ 0.5-1.5 (not measured for Agilus30 on PLA); "
                         "touching vertices stick to the indenter and slide where the tangential force exceeds mu times the "
-                        "normal one (README 'Known limits'); presses follow the path with Newton solves (slower)")
+                        "normal one (README 'Known limits'); presses follow the path (slower)")
     p.add_argument("--allow-invalid", "--allow-unsettled", action="store_true",
                    help="exit 0 even when a frame fails its physics checks (skin inside the indenter beyond "
                         "the bound, press not settled, MuJoCo warnings); the frames are written either way")

@@ -50,10 +50,10 @@ def _paper_motion(char: str):
 def _simulate(design, char: str, rng, friction: float = FRICTION):
     """Physics + rendering of one letter motion: list of (StereoFrame, Truth)."""
     from twin import robot
-    from twin.physics import SkinSim
+    from twin.physics import MeshSpec, SkinSim
     from twin.simulate import render_truths
 
-    sim = SkinSim(design, make_indenter("letter", char=char), friction=friction)
+    sim = SkinSim(design, make_indenter("letter", char=char), friction=friction, mesh=MeshSpec(face_contact=True))
     res = robot.execute(sim, _paper_motion(char))
     truths = [t for _, _, t in res]
     frames = render_truths(design, truths, rng=rng, timestamps_s=[ts for ts, _, _ in res])
