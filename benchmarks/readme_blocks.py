@@ -9,7 +9,8 @@ A generated block in the README is the text between two marker lines::
 and :data:`BLOCKS` names what each block is made of: the gate figures of a quick run (``gate-figures``, every
 metric ``benchmarks/thresholds.toml`` guards), the twin's speed and fidelity table (``twin-speed``, from a
 ``bench twin`` record) and the identification coverage table (``identification-coverage``, from a
-``bench identification`` record). Each block's first line names the results directory it was written from;
+``bench identification`` record) and the tracking table (``tracking-identity``, from a ``bench tracking``
+record). Each block's first line names the results directory it was written from;
 the records behind the README's headline blocks are kept in ``docs/records/`` so that
 ``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
 """
@@ -189,11 +190,44 @@ def _identification_coverage(records: Records, source: str) -> str:
     return "\n".join(lines)
 
 
+_LETTER_MOTIONS = {"G": "rest; pressed 1, 2, 3 mm", "e": "rest; 3 mm, then slid 1 and 2 mm",
+                   "o": "rest; touch, then a rapid 2 mm + 2 mm diagonal"}
+
+
+def _tracking_identity(records: Records, source: str) -> str:
+    """Per letter of one ``bench tracking`` record: DTRC's and nearest neighbour's correct-id rates and wrong ids,
+    the largest lateral marker step between frames, and the frames that failed the twin's physics checks."""
+    rec = records["tracking"]
+    rows = (rec.get("tables") or {}).get("per_frame") or []
+    if not rows:
+        raise ResultsError(f"{source}: the tracking record has no per_frame table")
+    letters = list(dict.fromkeys(r["letter"] for r in rows))
+    mu = ((rec.get("metrics") or {}).get("friction") or {}).get("value")
+    lines = [f"Tracking from the {_provenance(rec, source)}; skin/letter friction μ = {_fmt(mu)}; a frame's id is "
+             "correct when the nearest true marker has it within half a separation:", "",
+             "| letter | motion | frames (invalid) | DTRC correct rate, wrong ids | nearest neighbour correct rate, "
+             "wrong ids | largest lateral marker step |", "| --- | --- | --- | --- | --- | --- |"]
+    for ch in letters:
+        per = {t: [r for r in rows if r["letter"] == ch and r["tracker"] == t] for t in ("dtrc", "nn")}
+        frames = per["dtrc"]
+        invalid = sum(1 for r in frames if not r.get("physics_valid", True))
+
+        def rate(t):
+            rs = per[t]
+            return (f"{_fmt(min(r['correct_rate'] for r in rs))} (worst frame), {sum(int(r['wrong']) for r in rs)}"
+                    if rs else "—")
+        lines.append(f"| {ch} | {_LETTER_MOTIONS.get(ch, '')} | {len(frames)} ({invalid}) | {rate('dtrc')} | "
+                     f"{rate('nn')} | {_value(rec, f'max_lateral_step_mm_{ch}')} |")
+    return "\n".join(lines)
+
+
 BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
     ReadmeBlock("gate-figures", None, gate_figures_markdown, "every metric the CI gate guards, from a quick run"),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
                 "wrong ids and coverage per defect condition and pattern"),
+    ReadmeBlock("tracking-identity", "tracking", _tracking_identity,
+                "DTRC vs nearest-neighbour ids per letter motion, with the frames' physics verdicts"),
 )}
 
 
