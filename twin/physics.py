@@ -43,6 +43,9 @@ from twin.readout import SkinReadout
 __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm", "DIRECT_ACCEPT_MM",
            "AXIS_CONTACT_MESH"]
 
+FRICTION_SETTLE_MAX_STEPS = 1200  # with friction a dragged contact relaxes by its anchors sliding at most
+                                  # stick.STICK_MAX_SLIDE_MM a step: the letter 'o' after its rapid 2 mm + 2 mm
+                                  # move settled in 897 steps (damped continuation off; 400 + 400 damped did not)
 MAX_INCREMENT_MM = 0.1       # largest indenter move per physics step while clear of the skin
 CONTACT_INCREMENT_MM = 0.06  # ... and while touching it. A contact vertex lags the (zero-velocity) mocap by about
                              # 4 ζ² increments (the steady ramp error of the contact's reference dynamics: time
@@ -256,11 +259,16 @@ class SkinSim(SkinReadout):
         return n
 
     def settle(self, *, tol_mm: float = SETTLE_TOL_MM, consecutive: int = SETTLE_CONSECUTIVE,
-               max_steps: int = SETTLE_MAX_STEPS, abort=None,
+               max_steps: int | None = None, abort=None,
                damped_steps: int = SETTLE_DAMPED_STEPS) -> SettleStats:
-        """Step until the markers are quasi-static (:func:`twin.solve.settle`). With friction the stick anchors
-        count as markers: a contact still sliding is not at equilibrium even when the markers barely move (a
-        0.3 mm slide at mu = 0.3 looked settled with the anchors still sliding, Q/P 0.385, relaxing to 0.31)."""
+        """Step until the markers are quasi-static (:func:`twin.solve.settle`; at most ``max_steps`` before the
+        damped continuation, default ``SETTLE_MAX_STEPS``, with friction ``FRICTION_SETTLE_MAX_STEPS``). With
+        friction the stick anchors count as markers: a contact still sliding is not at equilibrium even when the
+        markers barely move (a 0.3 mm slide at mu = 0.3 looked settled with the anchors still sliding, Q/P 0.385,
+        relaxing to 0.31)."""
+        if max_steps is None:
+            max_steps = FRICTION_SETTLE_MAX_STEPS if len(self._stick_eq) else SETTLE_MAX_STEPS
+
         def with_anchors():
             return (np.vstack([self.markers()[0], units.m_to_mm(self._stick_anchor)]),)
         markers = with_anchors if len(self._stick_eq) else self.markers
