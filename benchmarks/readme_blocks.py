@@ -139,7 +139,7 @@ def _twin_speed(records: Records, source: str) -> str:
          f"{_value(rec, 'sharp_penetration_max_mm')} ({_value(rec, 'sharp_press_s')})",
          f"{pen_goal}, ≤ {GOALS['sharp_press_s']:g} s — "
          f"{verdict(('sharp_penetration_max_mm', 'penetration_max_mm'), ('sharp_press_s', 'sharp_press_s'))}"),
-        ("5 mm press on the axis contact mesh (0.5 mm core + face contact), σ² = 10 / 5/3",
+        ("5 mm press on the axis contact mesh (0.5 mm core, mirrored split, face contact), σ² = 10 / 5/3",
          f"{_value(rec, 'axis_mesh_penetration_max_mm')} / {_value(rec, 'axis_mesh_sharp_penetration_max_mm')} "
          f"inside; apex {_value(rec, 'axis_mesh_apex_beyond_tip_mm')} beyond the σ² = 10 tip; "
          f"{_value(rec, 'axis_mesh_press_s')} / {_value(rec, 'axis_mesh_sharp_press_s')}",
