@@ -80,12 +80,11 @@ def dense_cell():
 
 
 def test_press_sequence_identifies_the_crowded_pose_of_the_dense_pattern(dense_cell):
-    """hexagon217_sep180 (1.8 mm separation) under z = 2.5·sin(2π/15·x): at 4 mm the detector drops 23
-    valley markers of one view (millimetres farther from the cameras than the crests, they peak at
-    the narrowed scale space's lowest scale and are rejected as small), and they reappear at 5 mm.
-    Measured: 217, 214, 204, 177, 177 of 217 at 1-5 mm, none wrong (fitting the increment instead of
-    its change from the last velocity, without re-acquisition: 217, 214, 203, 152, 144). Tolerance:
-    no wrong id in any frame; >= 80 % at 5 mm (a regression of either mechanism costs > 10 markers)."""
+    """hexagon217_sep180 (1.8 mm separation) under z = 2.5·sin(2π/15·x): the valley markers, millimetres
+    farther from the cameras than the crests, look ~0.7 x the median marker and must be detected
+    against their neighbours' size; markers lost for a frame are re-acquired. Measured: 217, 215, 213,
+    212, 208 of 217 at 1-5 mm, none wrong (before: 217, 214, 203, 152, 144, the detector rejecting 23
+    valley markers of one view at 4 mm as small). Tolerance: >= 95 % in every frame."""
     c = dense_cell
     assert c["wrong_ids_sequence"] == 0
-    assert c["matched_fraction"] >= 0.80
+    assert min(c["matched_fraction_frames"]) >= 0.95

@@ -190,6 +190,30 @@ def separate_debris(grey: np.ndarray, cand_all: np.ndarray, cand: np.ndarray, me
     return cand, debris, refine_and_measure(grey, cand, params)
 
 
+#: Typical neighbours (nearest first) whose median scale is a candidate's local reference size.
+LOCAL_SIZE_NEIGHBOURS = 6
+
+
+def _local_scale(cand: np.ndarray, typical: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Median scale of the :data:`LOCAL_SIZE_NEIGHBOURS` typical candidates nearest each of ``which``
+    (the candidate itself excluded): the size a marker there should have. A strongly pressed skin
+    moves markers towards and away from the cameras by millimetres, so markers in a valley of the
+    press look uniformly smaller than the image's median (down to the narrowed scale space's lowest
+    scale, where their scale is not refined); a speck is small against its neighbours too."""
+    ref = np.flatnonzero(typical)
+    out = np.full(int(which.sum()), np.inf)
+    if len(ref) < LOCAL_SIZE_NEIGHBOURS + 1:
+        return out
+    xy = cand[:, :2]
+    _, j = cKDTree(xy[ref]).query(xy[which], k=LOCAL_SIZE_NEIGHBOURS + 1)
+    idx = np.flatnonzero(which)
+    for r, (i, row) in enumerate(zip(idx, j)):
+        nb = ref[row]
+        nb = nb[nb != i][:LOCAL_SIZE_NEIGHBOURS]
+        out[r] = float(np.median(cand[nb, SIGMA]))
+    return out
+
+
 def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: np.ndarray,
            params: DetectionParams) -> tuple[np.ndarray, np.ndarray]:
     """Which candidates are markers, and their centres with touching neighbours' light excluded.
@@ -213,9 +237,12 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
     # outliers against the typical marker of this image: size (a marker squeezed between touching
     # neighbours reads smaller: down to 1/ratio**2), and saturation where markers are not saturated
     # (LED glare is; exposure-clipped markers all are)
-    med = float(_median(cand[keep & isolated & ~debris, SIGMA]))
+    typical = keep & isolated & ~debris
+    med = float(_median(cand[typical, SIGMA]))
     big_ok = cand[:, SIGMA] <= params.max_size_ratio * med
     small = cand[:, SIGMA] < med / params.max_size_ratio
+    if small.any():
+        small[small] = cand[small, SIGMA] < _local_scale(cand, typical, small) / params.max_size_ratio
     radius = RADIUS_PER_SIGMA * cand[:, MEASURE_SIGMA]
     inside = np.zeros(len(cand), bool)
     if params.isolation_inside is not None or debris.any():

@@ -21,7 +21,13 @@ ids. A proposal becomes an identification through three tests, each about the se
    whose neighbourhoods it breaks. A patch is anchored only if every alternative is excluded by at
    least :data:`ANCHOR_EVIDENCE` markers; otherwise all its ids are withdrawn ("not anchored").
    A patch that does not reach the pattern's outer ring on enough sides (e.g. the far side of an
-   occlusion) is therefore left unidentified rather than guessed.
+   occlusion) is therefore left unidentified rather than guessed. Within an anchored patch of a
+   hexagonal or square lattice, a piece of four or more markers joined to the rest only
+   by bare edges (no identified marker neighbour of both ends) must be held in place by the rest
+   too: where a crest crowds whole rows out of the detection, the piece beyond the gap reads as
+   smoothly shifted towards the rest as in place, so every shift away from the rest must put
+   :data:`ANCHOR_EVIDENCE` of its markers on slots the rest holds or outside the design; the
+   survivors are then tested again.
 3. **Rotation.** Turning the pattern by its symmetry angle (60 deg for hexagonal and circular
    patterns, 90 deg for square ones) changes nothing in the image. The in-plane rotation of each
    patch (Procrustes, image against design) must be within +-(half the symmetry angle - 7.5 deg),

@@ -55,9 +55,34 @@ def _beyond_hits(pts, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gate):
 
 
 @numba.njit(cache=True)
-def _components(slot_of, blob_of, nbr):
+def _joined(s, j, blob_of, nbr):
+    """Whether the design neighbours ``s`` and ``j`` share an identified design neighbour. A link
+    without one is a bare edge across a gap: where a press crowds whole rows of pins out of the
+    detection (a crest), the markers on either side of the gap are read as well one row or two
+    over as in place (the missing rows shrink to nothing instead of to the crest's crowding, and
+    the reading is the smoother one), so local consistency cannot tell the two readings apart
+    there and the evidence that anchors one side says nothing about the other."""
+    for a in range(nbr.shape[1]):
+        t = nbr[s, a]
+        if t < 0:
+            break
+        if t == j or blob_of[t] < 0:
+            continue
+        for b in range(nbr.shape[1]):
+            u = nbr[j, b]
+            if u < 0:
+                break
+            if u == t:
+                return True
+    return False
+
+
+@numba.njit(cache=True)
+def _components(slot_of, blob_of, nbr, triangles=False):
     """Connected patches of identified blobs (design neighbours within 1.5 pitches both identified):
-    patch index per blob, -1 for unidentified blobs."""
+    patch index per blob, -1 for unidentified blobs. With ``triangles``, two neighbours are joined
+    only through an identified design triangle: a third marker, identified, neighbour of both
+    (:func:`_joined`)."""
     n = len(slot_of)
     comp = np.full(n, -1, np.int64)
     stack = np.empty(n, np.int64)
@@ -78,7 +103,7 @@ def _components(slot_of, blob_of, nbr):
                 if j < 0:
                     break
                 bj = blob_of[j]
-                if bj >= 0 and comp[bj] < 0:
+                if bj >= 0 and comp[bj] < 0 and (not triangles or _joined(s, j, blob_of, nbr)):
                     comp[bj] = c
                     stack[sp] = bj
                     sp += 1

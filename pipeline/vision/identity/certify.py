@@ -14,7 +14,7 @@ from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchore
                                                 _components, _rotation_deg)
 from pipeline.vision.identity.consistency import _blob_of, _consistency, consistent
 from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
-                                                GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS,
+                                                GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS, SEAM_LONGER,
                                                 R_ANCHOR, R_FEW, R_NO_BLOB, R_OK, R_ROTATION)
 from pipeline.vision.identity.fits import _fit, _fit_sums, _gather
 from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
@@ -138,16 +138,30 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
     -------
     (n,) int64 certified ids (-1 where withdrawn).
     """
-    N = len(lat.xy)
     if reason is None:
-        reason = np.zeros(N, np.int64)
+        reason = np.zeros(len(lat.xy), np.int64)
+    # the markers of a withdrawn patch or piece were some of the neighbours the markers beside them
+    # were found consistent with (a marker joined to the rest only through a withdrawn piece is left
+    # with one identified neighbour): the survivors are tested again, until nothing more is withdrawn
+    while True:
+        slot_of, withdrawn = _certify_once(pts, slot_of, lat, reason)
+        if not withdrawn:
+            return slot_of
+
+
+def _certify_once(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice,
+                  reason: np.ndarray) -> tuple[np.ndarray, bool]:
+    """One pass of :func:`certify`: consistency, then each patch's anchoring and rotation. Returns
+    (ids, whether a patch of consistent markers was withdrawn)."""
+    N = len(lat.xy)
     slot_of = consistent(pts, slot_of, lat, reason)
     lab = np.flatnonzero(slot_of >= 0)
     if len(lab) == 0:
-        return slot_of
+        return slot_of, False
     blob_of = _blob_of(slot_of, N)
     # patches: identified design neighbours (every such pair passed the consistency test)
     comp_of = _components(slot_of, blob_of, lat.nbr)
+    pieces = _components(slot_of, blob_of, lat.nbr, True)
     comp = comp_of[lab]
     n_comp = int(comp.max()) + 1
     beyond = np.zeros(n_comp, np.int64)
@@ -174,6 +188,7 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
         elif h.all():
             beyond[:] = len(h)
     limit = rotation_limit_deg(lat)
+    withdrawn = False
     for c in range(n_comp):
         members = lab[comp == c]
         code = R_OK
@@ -188,7 +203,74 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
         if code != R_OK:
             reason[slot_of[members]] = code
             slot_of[members] = -1
-    return slot_of
+            withdrawn = True
+        elif lat.translation_lattice and len(np.unique(pieces[members])) > 1:
+            loose = _loose_pieces(slot_of, members, pieces[members], lat)
+            if loose.any():
+                reason[slot_of[loose]] = R_ANCHOR
+                slot_of[loose] = -1
+                withdrawn = True
+    return slot_of, withdrawn
+
+
+def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, lat: Lattice) -> np.ndarray:
+    """Blobs of an anchored patch ``members`` of a translation lattice (with their triangle-connected
+    pieces ``piece``) whose piece the rest of the patch does not hold in place. A piece joined to the
+    rest only by bare edges (:func:`pipeline.vision.identity.anchoring._joined`) may be read shifted
+    along the lattice across the gap, its local consistency intact and the patch's anchoring (won on
+    the evidence of its largest piece) vouching for it. The rest excludes a shifted reading of a
+    smaller piece where that reading would put its markers on slots the rest holds, or outside the
+    design: every lattice shift of the design (:attr:`Lattice.alt`) applied to the piece alone must be
+    excluded by :data:`ANCHOR_EVIDENCE` of its markers (all of them when it has fewer), unless the
+    shift moves the piece away from the rest across every edge of the seam (each longer than
+    :data:`SEAM_LONGER` pitches): only then does it explain the gap, by rows crowded out of the
+    detection. Pieces of fewer than :data:`MIN_PATCH` markers carry no reading of their own (every fit
+    of theirs leans on the rest) and are left to the consistency test."""
+    shifts = _shift_alternatives(lat)
+    ids, size = np.unique(piece, return_counts=True)
+    held = np.zeros(len(lat.xy) + 1, bool)                # the last entry: outside the design
+    loose = np.zeros(len(slot_of), bool)
+    for p in ids[np.argsort(-size, kind="stable")][1:]:
+        mine = members[piece == p]
+        if len(mine) < MIN_PATCH:
+            continue
+        held[:] = False
+        held[-1] = True
+        held[slot_of[members[piece != p]]] = True
+        evidence = held[shifts[:, slot_of[mine]]].sum(axis=1)
+        open_ = evidence < min(ANCHOR_EVIDENCE, len(mine))
+        if open_.any():
+            # a shifted reading explains the gap by rows crowded out of the detection only when it
+            # moves the piece away from the rest across every bare edge of the seam
+            a, c = _seam(slot_of, mine, members[piece != p], lat)
+            alt = shifts[open_][:, a]
+            far = np.linalg.norm(lat.xy[alt] - lat.xy[c][None], axis=2) > SEAM_LONGER * lat.pitch
+            open_[open_] = (far & (alt >= 0)).all(axis=1)
+        if open_.any():
+            loose[mine] = True
+    return loose
+
+
+def _seam(slot_of, mine, rest, lat):
+    """The slots (piece side, rest side) of the design-neighbour pairs joining the piece ``mine`` to
+    the ``rest`` of its patch (blob indices)."""
+    in_rest = np.zeros(len(lat.xy) + 1, bool)
+    in_rest[slot_of[rest]] = True
+    s = slot_of[mine]
+    nb = lat.nbr[s]
+    hit = in_rest[nb] & (nb >= 0)
+    return np.repeat(s, hit.sum(axis=1)), nb[hit]
+
+
+_SHIFTS: dict = {}
+
+
+def _shift_alternatives(lat: Lattice) -> np.ndarray:
+    """The rows of :attr:`Lattice.alt` that shift the design along the lattice."""
+    key = id(lat)
+    if key not in _SHIFTS:
+        _SHIFTS[key] = lat.alt[np.array([n.startswith("shifted") for n in lat.alt_names], bool)]
+    return _SHIFTS[key]
 
 
 def contradicted(slot_of: np.ndarray, other: np.ndarray) -> np.ndarray:

@@ -89,6 +89,11 @@ SLOT_MATCH_SYMMETRY = 0.1
 SLOT_MATCH_SHIFT = 0.25
 LATTICE_STEP = 1.1
 BEYOND_EMPTY = 0.5
+#: A piece of a patch joined to the rest only by bare edges (no identified marker neighbour of both
+#: ends) may have been read shifted across the gap only by a shift that makes every such edge longer
+#: than this many separations: the rows between were crowded out of the detection (a crest of a
+#: narrow sine pressed 4 mm crowded three separations into 1.3 spacings, and two rows vanished).
+SEAM_LONGER = 1.5
 #: Smallest patch that is reported (a patch needs neighbourhoods of three to be tested at all).
 MIN_PATCH = 4
 
