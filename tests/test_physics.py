@@ -57,7 +57,6 @@ def test_flat_plate_force_between_layer_estimates():
     sim.settle()
     E, nu, G = d.gel.youngs_modulus_mpa, d.gel.poisson_ratio, d.optics.gel_thickness_mm
     M = E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
-    ax = sim.mesh.nodes_mm
     area = _mesh_area_mm2(sim)
     f_confined = M * area * 0.5 / G            # MPa * mm^2 = N
     f = sim.contact_force_n()

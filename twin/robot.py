@@ -24,7 +24,6 @@ Motions (paper Sec. IV-B and IV-D):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
