@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN,
                                                F2F_MIN_FIT, F2F_NEIGHBOURS, F2F_RADIUS, F2F_RATIO, F2F_SPREAD,
-                                               _median_where, _nn_dist, _predict)
+                                               _assign_mutual, _median_where, _nn_dist, _predict)
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire"]
 
@@ -138,13 +138,5 @@ def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
     idx, j1, d1, s = idx[good], j[good, 0], d[good, 0], s[good]
     if len(idx) == 0:
         return out
-    # mutual: the blob's nearest "prediction" (re-acquired predictions and identified blobs) is this
-    # marker's, and the next one is clearly farther
-    cand = np.vstack([pred[idx], pts[taken], rivals])
-    pd, pj = cKDTree(cand).query(pts[j1], k=2)
-    mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
-    idx, j1 = idx[mutual], j1[mutual]
-    u, c = np.unique(j1, return_counts=True)
-    single = ~np.isin(j1, u[c > 1])
-    out[idx[single]] = j1[single]
-    return out
+    # mutual against the re-acquired predictions, the identified blobs and the rivals
+    return _assign_mutual(out, idx, j1, d1, s, np.vstack([pred[idx], pts[taken], rivals]), pts)

@@ -218,11 +218,22 @@ def _accept(pred: np.ndarray, ok: np.ndarray, tree: cKDTree, pts: np.ndarray, s_
     idx, j1, d1, s = idx[good], j[good, 0], d[good, 0], s[good]
     if len(idx) == 0:
         return out
-    if len(idx) >= 2:
-        # mutual: the blob's nearest prediction is this marker's, and the next one is clearly farther
-        pd, pj = cKDTree(pred[idx]).query(pts[j1], k=2)
-        mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
-        idx, j1 = idx[mutual], j1[mutual]
+    if len(idx) < 2:       # a single prediction is its blob's nearest, with no other near it
+        out[idx] = j1
+        return out
+    return _assign_mutual(out, idx, j1, d1, s, pred[idx], pts)
+
+
+def _assign_mutual(out: np.ndarray, idx: np.ndarray, j1: np.ndarray, d1: np.ndarray, s: np.ndarray,
+                   cand: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """The mutual test and the assignment shared by :func:`_accept` and re-acquisition: prediction ``idx[k]``
+    (at ``cand[k]``, whose nearest blob ``j1[k]`` lies ``d1[k]`` away, local spacing ``s[k]``) gets that blob
+    when the blob's nearest candidate is this prediction and the next candidate is :data:`F2F_RATIO` times
+    and :data:`F2F_MARGIN` spacings farther (``cand`` may hold more points after the predictions: they only
+    compete), and no other prediction takes the same blob. Writes into ``out`` and returns it."""
+    pd, pj = cKDTree(cand).query(pts[j1], k=2)
+    mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
+    idx, j1 = idx[mutual], j1[mutual]
     u, c = np.unique(j1, return_counts=True)
     single = ~np.isin(j1, u[c > 1])
     out[idx[single]] = j1[single]
