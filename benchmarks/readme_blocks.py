@@ -207,17 +207,15 @@ def _tracking_identity(records: Records, source: str) -> str:
              "correct when the nearest true marker has it within half a separation:", "",
              "| letter | motion | frames (invalid) | DTRC correct rate, wrong ids | nearest neighbour correct rate, "
              "wrong ids | largest lateral marker step |", "| --- | --- | --- | --- | --- | --- |"]
-    for ch in letters:
-        per = {t: [r for r in rows if r["letter"] == ch and r["tracker"] == t] for t in ("dtrc", "nn")}
-        frames = per["dtrc"]
-        invalid = sum(1 for r in frames if not r.get("physics_valid", True))
+    def rate(rs) -> str:      # one tracker's frames of one letter: worst correct rate, wrong ids in all
+        return (f"{_fmt(min(r['correct_rate'] for r in rs))} (worst frame), {sum(int(r['wrong']) for r in rs)}"
+                if rs else "—")
 
-        def rate(t):
-            rs = per[t]
-            return (f"{_fmt(min(r['correct_rate'] for r in rs))} (worst frame), {sum(int(r['wrong']) for r in rs)}"
-                    if rs else "—")
-        lines.append(f"| {ch} | {_LETTER_MOTIONS.get(ch, '')} | {len(frames)} ({invalid}) | {rate('dtrc')} | "
-                     f"{rate('nn')} | {_value(rec, f'max_lateral_step_mm_{ch}')} |")
+    for ch in letters:
+        dtrc, nn = ([r for r in rows if r["letter"] == ch and r["tracker"] == t] for t in ("dtrc", "nn"))
+        invalid = sum(1 for r in dtrc if not r.get("physics_valid", True))
+        lines.append(f"| {ch} | {_LETTER_MOTIONS.get(ch, '')} | {len(dtrc)} ({invalid}) | {rate(dtrc)} | "
+                     f"{rate(nn)} | {_value(rec, f'max_lateral_step_mm_{ch}')} |")
     return "\n".join(lines)
 
 
