@@ -18,7 +18,8 @@ from typing import Any, Mapping
 from benchmarks.results import ResultsError, load_records
 from benchmarks.thresholds import check, load_thresholds
 
-__all__ = ["write_report", "render_report"]
+__all__ = ["write_report", "render_report", "calibration_comparison", "invalid_cells", "designs_used",
+           "paper_figures"]
 
 
 def _fmt(value: Any, digits: int = 4) -> str:
@@ -39,6 +40,32 @@ def _verdict(agrees: bool | None) -> str:
 
 def _md_escape(text: str) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
+
+
+def invalid_cells(rec: Mapping[str, Any]) -> str:
+    """How many of a record's twin cells failed the twin's physics checks, "N of M" (bold when any did), or "—"
+    for an experiment that does not count them."""
+    inv, val = ((rec.get("metrics") or {}).get(k, {}).get("value") for k in ("invalid_cells", "valid_cells"))
+    if inv is None:
+        return "—"
+    if val is not None and inv:
+        return f"**{inv:g}** of {inv + val:g}"
+    return f"{inv:g}" + (f" of {inv + val:g}" if val is not None else "")
+
+
+def designs_used(rec: Mapping[str, Any]) -> str:
+    """The sensor designs a record's cells ran on, comma-separated."""
+    return ", ".join(rec.get("designs_used") or [rec["design"].get("name", "?")])
+
+
+def paper_figures(rec: Mapping[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """A record's declared paper figures next to its measurement: (metric, paper value, this run's value, unit,
+    where in the paper), values formatted."""
+    out = []
+    for metric, p in (rec.get("paper") or {}).items():
+        m = (rec.get("metrics") or {}).get(metric)
+        out.append((metric, _fmt(p["value"]), _fmt(m["value"] if m else None), p["unit"], p["text"]))
+    return out
 
 
 def calibration_comparison(records: Mapping[str, Mapping[str, Any]], against: Mapping[str, Mapping[str, Any]],
@@ -89,7 +116,7 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
                   f"- variant: {'quick' if quick == {True} else 'full' if quick == {False} else 'mixed quick/full'}",
                   f"- seed(s): {', '.join(map(str, seeds))}",
                   f"- total wall time: {total:.1f} s",
-                  f"- versions: " + ", ".join(f"{k} {val}" for k, val in v.items()), ""]
+                  "- versions: " + ", ".join(f"{k} {val}" for k, val in v.items()), ""]
 
     lines += ["## Summary", "",
               "Twin cells failing their physics checks (skin > 0.05 mm inside the indenter, unsettled, MuJoCo "
@@ -98,21 +125,16 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
               "| --- | --- | --- | --- | --- |"]
     for name, r in recs.items():
         status = r["status"] if r["status"] == "ok" else f"**{r['status']}**"
-        inv, val = (r["metrics"].get(k, {}).get("value") for k in ("invalid_cells", "valid_cells"))
-        phys = "—" if inv is None else (f"**{inv:g}** of {inv + val:g}" if val is not None and inv
-                                       else f"{inv:g}" + (f" of {inv + val:g}" if val is not None else ""))
-        lines.append(f"| {name} | {status} | {_fmt(r.get('wall_time_s'), 3)} | {phys} | "
-                     f"{_md_escape(', '.join(r.get('designs_used') or [r['design'].get('name', '?')]))} |")
+        lines.append(f"| {name} | {status} | {_fmt(r.get('wall_time_s'), 3)} | {invalid_cells(r)} | "
+                     f"{_md_escape(designs_used(r))} |")
     lines.append("")
 
     lines += ["## Paper figure vs this run", "",
               "| experiment | quantity | paper | this run | unit | where in the paper |",
               "| --- | --- | --- | --- | --- | --- |"]
     for name, r in recs.items():
-        for metric, p in r.get("paper", {}).items():
-            m = r["metrics"].get(metric)
-            lines.append(f"| {name} | {metric} | {_fmt(p['value'])} | {_fmt(m['value'] if m else None)} | "
-                         f"{p['unit']} | {_md_escape(p['text'])} |")
+        for metric, paper, measured, unit, where in paper_figures(r):
+            lines.append(f"| {name} | {metric} | {paper} | {measured} | {unit} | {_md_escape(where)} |")
     lines += ["", "Trends and qualitative claims:", "",
               "| experiment | paper's claim | this run | verdict |", "| --- | --- | --- | --- |"]
     for name, r in recs.items():
