@@ -7,9 +7,10 @@ A generated block in the README is the text between two marker lines::
     <!-- report:NAME:end -->
 
 and :data:`BLOCKS` names what each block is made of: the gate figures of a quick run (``gate-figures``, every
-metric ``benchmarks/thresholds.toml`` guards), the twin's speed and fidelity table (``twin-speed``, from a
-``bench twin`` record) and the identification coverage table (``identification-coverage``, from a
-``bench identification`` record) and the tracking table (``tracking-identity``, from a ``bench tracking``
+metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``quick-experiments``, one row per
+experiment: the paper's figures and claims beside the run's), the twin's speed and fidelity table
+(``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
+from a ``bench identification`` record) and the tracking table (``tracking-identity``, from a ``bench tracking``
 record). Each block's first line names the results directory it was written from;
 the records behind the README's headline blocks are kept in ``docs/records/`` so that
 ``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
@@ -22,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from benchmarks.report import _fmt
+from benchmarks.report import _fmt, _md_escape, _verdict, designs_used, invalid_cells, paper_figures
 from benchmarks.results import ResultsError, load_records
 from benchmarks.thresholds import bounds_text, check, load_thresholds
 
@@ -102,6 +103,41 @@ def gate_figures_markdown(records: Records, source: str) -> str:
             sanity = bounds_text(th.min, th.max, table=True)
             ok = "**fails**" if (exp, shown) in violations else "passes"
             lines.append(f"| {exp} | {shown} | {value} | {golden} | {sanity} | {th.kind or '—'} | {ok} |")
+    return "\n".join(lines)
+
+
+# ----- quick-experiments: one row per experiment of a quick run --------------------------------------
+
+def _quick_experiments(records: Records, source: str) -> str:
+    """One row per experiment of a quick run: its designs, the twin cells that failed the physics checks, and
+    the paper's figures and claims (or the twin's goals) beside this run's, with the verdict: the same
+    facts as the report's summary and "Paper figure vs this run" tables, taken from the same helpers."""
+    recs = {n: r for n, r in sorted(records.items()) if r.get("quick")}
+    if not recs:
+        raise ResultsError(f"{source}: no quick records: the experiments table comes from a --quick run")
+    commits = sorted({str(r.get("commit", "unknown"))[:10] for r in recs.values()})
+    modes = sorted({(r.get("calibration") or {}).get("mode", "oracle") for r in recs.values()})
+    seeds = sorted({str(r.get("seed")) for r in recs.values()})
+    lines = [f"Quick-run records in `{source}` (commit {', '.join(commits)}, calibration {', '.join(modes)}, "
+             f"seed {', '.join(seeds)}); each claim is the paper's (or, for `twin`, the twin's goal), each "
+             "figure the experiment's own record:", "",
+             "| experiment | designs | invalid twin cells | paper / goal | this run | verdict |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for name, r in recs.items():
+        paper, run, verdict = [], [], []
+        for metric, value, measured, unit, where in paper_figures(r):
+            unit = "" if unit == "1" else f" {unit}"
+            paper.append(f"{metric} {value}{unit} ({where})")
+            run.append(f"{metric} {measured}{unit}")
+            verdict.append("—")
+        for f in r.get("findings", []):
+            paper.append(f["claim"])
+            run.append(f["observed"])
+            verdict.append(_verdict(f["agrees"]))
+        if r.get("status") != "ok":
+            run.append(f"status {r.get('status')}")
+        cells = ["<br>".join(_md_escape(x) for x in col) or "—" for col in (paper, run, verdict)]
+        lines.append(f"| {name} | {_md_escape(designs_used(r))} | {invalid_cells(r)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -221,6 +257,8 @@ def _tracking_identity(records: Records, source: str) -> str:
 
 BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
     ReadmeBlock("gate-figures", None, gate_figures_markdown, "every metric the CI gate guards, from a quick run"),
+    ReadmeBlock("quick-experiments", None, _quick_experiments,
+                "one row per experiment of a quick run: the paper's figures and claims beside this run's"),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
                 "wrong ids and coverage per defect condition and pattern"),

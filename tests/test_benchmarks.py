@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -505,19 +506,20 @@ def test_readme_shows_every_metric_the_ci_gate_guards():
 
 
 def test_readme_headline_blocks_match_the_records_they_were_written_from():
-    """The README's headline tables (twin speed, identification coverage) are generated blocks: each is written
-    again from the record it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
-    figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
-    fails here."""
+    """The README's headline tables (twin speed, identification coverage, tracking, the quick run's experiments)
+    are generated blocks: each is written again from the records it names (kept in docs/records/) and must equal
+    the README's text, so a hand edit of a figure, or a record replaced without rerunning
+    `stereotactip report DIR --readme README.md --block NAME`, fails here."""
     from benchmarks.readme_blocks import readme_blocks, render_block
 
     root = Path(__file__).resolve().parents[1]
     blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
-    assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity"} <= set(blocks)
+    assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
+            "quick-experiments"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # written from the CI run's directory; checked metric by metric above
             continue
-        source = text.split("` record in `", 1)[1].split("`", 1)[0]
+        source = re.search(r" records? in `([^`]+)`", text).group(1)
         assert source.startswith("docs/records/"), f"README block {name}: its record is not kept in docs/records/"
         records = res.load_records(root / source)
         assert render_block(name, records, source) == text, (
