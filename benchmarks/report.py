@@ -18,7 +18,7 @@ from typing import Any, Mapping
 from benchmarks.results import ResultsError, load_records
 from benchmarks.thresholds import check, load_thresholds
 
-__all__ = ["write_report", "render_report", "calibration_comparison", "invalid_cells", "designs_used",
+__all__ = ["write_report", "render_report", "calibration_comparison", "calibration_mode", "comparison_table", "invalid_cells", "designs_used",
            "paper_figures"]
 
 
@@ -68,33 +68,50 @@ def paper_figures(rec: Mapping[str, Any]) -> list[tuple[str, str, str, str, str]
     return out
 
 
+def calibration_mode(rec: Mapping[str, Any]) -> str:
+    """The calibration a record's pipeline was given: "oracle" (the twin's exact sensor) or "estimated"."""
+    return (rec.get("calibration") or {}).get("mode", "oracle")
+
+
+def comparison_table(records: Mapping[str, Mapping[str, Any]], against: Mapping[str, Mapping[str, Any]],
+                     metrics: Mapping[str, tuple[str, ...]] | None = None,
+                     columns: tuple[str, str] = ("this run", "other run")) -> list[str]:
+    """Markdown table lines: the metrics of the experiments that ran (status ok) in both ``records`` and
+    ``against``, side by side under each record's calibration mode, with the difference (other − this); empty
+    when no experiment ran in both. ``metrics`` keeps only these experiments and metrics, in its order."""
+    names = list(metrics) if metrics is not None else sorted(records)
+    common = [n for n in names if n in records and n in against and records[n].get("status") == "ok"
+              and against[n].get("status") == "ok"]
+    if not common:
+        return []
+    lines = [f"| experiment | metric | {columns[0]} | {columns[1]} | {columns[1].split()[0]} − {columns[0].split()[0]} "
+             "| unit |", "| --- | --- | --- | --- | --- | --- |"]
+    for name in common:
+        a, b = records[name], against[name]
+        label_a = f"{calibration_mode(a)}{' quick' if a.get('quick') else ''}"
+        label_b = f"{calibration_mode(b)}{' quick' if b.get('quick') else ''}"
+        rows = []
+        for metric in (metrics[name] if metrics is not None else a.get("metrics", {})):
+            ma, mb = a.get("metrics", {}).get(metric), b.get("metrics", {}).get(metric)
+            if ma is None or mb is None:
+                continue
+            va, vb = ma.get("value"), mb.get("value")
+            diff = (vb - va) if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else None
+            rows.append(f"| {name} | {metric} | {_fmt(va)} | {_fmt(vb)} | {_fmt(diff, 3)} | {ma.get('unit', '')} |")
+        if rows or metrics is None:         # a chosen experiment without any chosen metric in both is left out
+            lines += [f"| **{name}** | | {label_a} | {label_b} | | |"] + rows
+    return lines
+
+
 def calibration_comparison(records: Mapping[str, Mapping[str, Any]], against: Mapping[str, Mapping[str, Any]],
                            against_name: str) -> list[str]:
     """Markdown lines: every metric of the experiments that both ``records`` and ``against`` hold, side by side
     under each record's calibration mode (e.g. oracle | estimated), with the difference."""
-    def mode(r):
-        return (r.get("calibration") or {}).get("mode", "oracle")
-
-    common = [n for n in sorted(records) if n in against and records[n].get("status") == "ok"
-              and against[n].get("status") == "ok"]
     lines = ["## Side by side: this run and " + _md_escape(against_name), "",
              "Each experiment's metrics in this directory and in the other one, under the calibration mode each "
              "was run with (`--calibration oracle`: the twin's exact sensor; `estimated`: what a user has).", ""]
-    if not common:
-        return lines + ["No experiment ran in both directories.", ""]
-    lines += ["| experiment | metric | this run | other run | other − this | unit |", "| --- | --- | --- | --- | --- | --- |"]
-    for name in common:
-        a, b = records[name], against[name]
-        label_a, label_b = f"{mode(a)}{' quick' if a.get('quick') else ''}", f"{mode(b)}{' quick' if b.get('quick') else ''}"
-        lines.append(f"| **{name}** | | {label_a} | {label_b} | | |")
-        for metric, ma in a.get("metrics", {}).items():
-            mb = b.get("metrics", {}).get(metric)
-            if mb is None:
-                continue
-            va, vb = ma.get("value"), mb.get("value")
-            diff = (vb - va) if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else None
-            lines.append(f"| {name} | {metric} | {_fmt(va)} | {_fmt(vb)} | {_fmt(diff, 3)} | {ma.get('unit', '')} |")
-    return lines + [""]
+    table = comparison_table(records, against)
+    return lines + (table or ["No experiment ran in both directories."]) + [""]
 
 
 def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,

@@ -551,6 +551,35 @@ def test_readme_block_is_written_from_its_experiment_only(tmp_path):
         update_readme(readme, run)
 
 
+def test_readme_block_of_two_runs_needs_the_other_run(tmp_path):
+    """The oracle-vs-estimated block compares two directories: written without `--against` it is a clear
+    error; a run against itself shows its chosen figures with no difference, under each run's calibration."""
+    from benchmarks.readme_blocks import (CALIBRATION_METRICS, begin_marker, end_marker, render_block,
+                                          update_readme)
+
+    root = Path(__file__).resolve().parents[1]
+    source = "docs/records/quick-experiments"
+    records = res.load_records(root / source)
+    with pytest.raises(res.ResultsError, match="--against DIR2"):
+        render_block("oracle-vs-estimated", records, source)
+    text = render_block("oracle-vs-estimated", records, source, (source, records))
+    rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| ") and "**" not in line]
+    metrics = {(c[0].strip(), c[1].strip()) for c in rows[2:]}
+    assert metrics <= {(e, m) for e, ms in CALIBRATION_METRICS.items() for m in ms} and len(metrics) > 10
+    assert {c[4].strip() for c in rows[2:]} <= {"0", "—"}
+    readme = tmp_path / "README.md"
+    readme.write_text(f"{begin_marker('oracle-vs-estimated')}\n{end_marker('oracle-vs-estimated')}\n")
+    with pytest.raises(res.ResultsError, match="compares two runs"):
+        update_readme(readme, root / source, ("oracle-vs-estimated",))
+    run = tmp_path / "run"         # the report pages are written beside the records: a copy keeps docs/ clean
+    run.mkdir()
+    for name in ("patterns", "refraction"):
+        (run / f"{name}.json").write_bytes((root / source / f"{name}.json").read_bytes())
+    assert main(["report", str(run), "--against", str(run), "--readme", str(readme),
+                 "--block", "oracle-vs-estimated"]) == 0
+    assert "| **patterns** | | estimated quick | estimated quick | | |" in readme.read_text()
+
+
 def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy, tmp_path, monkeypatch):
     """`report DIR --against DIR2`: the experiments both directories hold, metric by metric under each run's
     calibration mode, with the difference; a directory without records is a clear error."""
