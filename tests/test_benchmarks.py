@@ -510,21 +510,23 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
     are generated blocks: each is written again from the records it names (kept in docs/records/) and must equal
     the README's text, so a hand edit of a figure, or a record replaced without rerunning
     `stereotactip report DIR --readme README.md --block NAME`, fails here."""
-    from benchmarks.readme_blocks import readme_blocks, render_block
+    from benchmarks.readme_blocks import BLOCKS, readme_blocks, render_block
 
     root = Path(__file__).resolve().parents[1]
     blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
-            "quick-experiments"} <= set(blocks)
+            "quick-experiments", "oracle-vs-estimated"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # written from the CI run's directory; checked metric by metric above
             continue
-        source = re.search(r" records? in `([^`]+)`", text).group(1)
-        assert source.startswith("docs/records/"), f"README block {name}: its record is not kept in docs/records/"
-        records = res.load_records(root / source)
-        assert render_block(name, records, source) == text, (
-            f"README block {name} differs from {source}: rerun `stereotactip report {source} --readme README.md "
-            f"--block {name}`")
+        source, *other = re.findall(r" records? in `([^`]+)`", text)     # a block of two runs names both
+        for where in (source, *other):
+            assert where.startswith("docs/records/"), f"README block {name}: {where} is not kept in docs/records/"
+        against = (other[0], res.load_records(root / other[0])) if BLOCKS[name].against else None
+        command = f"{source} --against {other[0]}" if against else source
+        assert render_block(name, res.load_records(root / source), source, against) == text, (
+            f"README block {name} differs from its records: rerun `stereotactip report {command} "
+            f"--readme README.md --block {name}`")
 
 
 def test_readme_block_is_written_from_its_experiment_only(tmp_path):
