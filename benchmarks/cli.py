@@ -167,7 +167,8 @@ def _report(args: argparse.Namespace) -> int:
     if args.readme:
         from benchmarks.readme_blocks import update_readme
 
-        print(update_readme(Path(args.readme), Path(args.dir), tuple(args.block or ("gate-figures",))))
+        print(update_readme(Path(args.readme), Path(args.dir), tuple(args.block or ("gate-figures",)),
+                            against_dir=Path(args.against) if args.against else None))
     print(path.with_name("report.html"))
     if path.with_name("report.png").is_file():
         print(path.with_name("report.png"))
@@ -220,7 +221,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--block", action="append", metavar="NAME",
                    help="with --readme: the block to rewrite, e.g. twin-speed from a `bench twin` results "
                         "directory, identification-coverage from a `bench identification` one (repeatable; names "
-                        "in benchmarks/readme_blocks.py)")
+                        "in benchmarks/readme_blocks.py); oracle-vs-estimated takes DIR2 from --against")
     r.set_defaults(func=_report)
 
     from benchmarks import cli_terrain

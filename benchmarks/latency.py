@@ -12,7 +12,6 @@ refraction correction (the runner reuses its cloud), so its time is under ``ster
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time

@@ -7,9 +7,10 @@ A generated block in the README is the text between two marker lines::
     <!-- report:NAME:end -->
 
 and :data:`BLOCKS` names what each block is made of: the gate figures of a quick run (``gate-figures``, every
-metric ``benchmarks/thresholds.toml`` guards), the twin's speed and fidelity table (``twin-speed``, from a
-``bench twin`` record) and the identification coverage table (``identification-coverage``, from a
-``bench identification`` record) and the tracking table (``tracking-identity``, from a ``bench tracking``
+metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``quick-experiments``, one row per
+experiment: the paper's figures and claims beside the run's), the twin's speed and fidelity table
+(``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
+from a ``bench identification`` record) and the tracking table (``tracking-identity``, from a ``bench tracking``
 record). Each block's first line names the results directory it was written from;
 the records behind the README's headline blocks are kept in ``docs/records/`` so that
 ``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
@@ -22,11 +23,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-from benchmarks.report import _fmt
+from benchmarks.report import (_fmt, _md_escape, _verdict, calibration_mode, comparison_table, designs_used,
+                               invalid_cells, paper_figures)
 from benchmarks.results import ResultsError, load_records
 from benchmarks.thresholds import bounds_text, check, load_thresholds
 
-__all__ = ["BLOCKS", "ReadmeBlock", "begin_marker", "end_marker", "render_block", "update_readme",
+__all__ = ["BLOCKS", "CALIBRATION_METRICS", "ReadmeBlock", "begin_marker", "end_marker", "render_block", "update_readme",
            "readme_blocks", "gate_figures_markdown", "README_BEGIN", "README_END"]
 
 Records = Mapping[str, Mapping[str, Any]]
@@ -35,17 +37,22 @@ Records = Mapping[str, Mapping[str, Any]]
 @dataclass(frozen=True)
 class ReadmeBlock:
     """One generated README block: its ``name`` (the marker's), the ``experiment`` whose record it needs (None:
-    every quick record in the directory) and ``body(records, source) -> str`` the Markdown between the markers."""
+    every quick record in the directory) and ``body(records, source) -> str`` the Markdown between the markers.
+    A block that compares two runs (``against``) is written by ``body(records, source, against_records,
+    against_source)`` from ``report DIR --against DIR2``."""
 
     name: str
     experiment: str | None
-    body: Callable[[Records, str], str]
+    body: Callable[..., str]
     about: str
+    against: bool = False
 
 
 def begin_marker(name: str) -> str:
     """The line that opens block ``name`` (the gate figures keep their original, shorter command)."""
-    command = "stereotactip report DIR --readme README.md" + ("" if name == "gate-figures" else f" --block {name}")
+    against = " --against DIR2" if name in BLOCKS and BLOCKS[name].against else ""
+    command = (f"stereotactip report DIR{against} --readme README.md"
+               + ("" if name == "gate-figures" else f" --block {name}"))
     return f"<!-- report:{name}:begin (written by `{command}`; do not edit) -->"
 
 
@@ -53,8 +60,6 @@ def end_marker(name: str) -> str:
     return f"<!-- report:{name}:end -->"
 
 
-README_BEGIN = begin_marker("gate-figures")
-README_END = end_marker("gate-figures")
 
 
 def _value(rec: Mapping[str, Any], metric: str, digits: int = 3) -> str:
@@ -103,6 +108,81 @@ def gate_figures_markdown(records: Records, source: str) -> str:
             ok = "**fails**" if (exp, shown) in violations else "passes"
             lines.append(f"| {exp} | {shown} | {value} | {golden} | {sanity} | {th.kind or '—'} | {ok} |")
     return "\n".join(lines)
+
+
+# ----- quick-experiments: one row per experiment of a quick run --------------------------------------
+
+def _quick_experiments(records: Records, source: str) -> str:
+    """One row per experiment of a quick run: its designs, the twin cells that failed the physics checks, and
+    the paper's figures and claims (or the twin's goals) beside this run's, with the verdict: the same
+    facts as the report's summary and "Paper figure vs this run" tables, taken from the same helpers."""
+    recs = {n: r for n, r in sorted(records.items()) if r.get("quick")}
+    if not recs:
+        raise ResultsError(f"{source}: no quick records: the experiments table comes from a --quick run")
+    commits = sorted({str(r.get("commit", "unknown"))[:10] for r in recs.values()})
+    modes = sorted({(r.get("calibration") or {}).get("mode", "oracle") for r in recs.values()})
+    seeds = sorted({str(r.get("seed")) for r in recs.values()})
+    lines = [f"Quick-run records in `{source}` (commit {', '.join(commits)}, calibration {', '.join(modes)}, "
+             f"seed {', '.join(seeds)}); each claim is the paper's (or, for `twin`, the twin's goal), each "
+             "figure the experiment's own record:", "",
+             "| experiment | designs | invalid twin cells | paper / goal | this run | verdict |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for name, r in recs.items():
+        paper, run, verdict = [], [], []
+        for metric, value, measured, unit, where in paper_figures(r):
+            unit = "" if unit == "1" else f" {unit}"
+            paper.append(f"{metric} {value}{unit} ({where})")
+            run.append(f"{metric} {measured}{unit}")
+            verdict.append("—")
+        for f in r.get("findings", []):
+            paper.append(f["claim"])
+            run.append(f["observed"])
+            verdict.append(_verdict(f["agrees"]))
+        if r.get("status") != "ok":
+            run.append(f"status {r.get('status')}")
+        cells = ["<br>".join(_md_escape(x) for x in col) or "—" for col in (paper, run, verdict)]
+        lines.append(f"| {name} | {_md_escape(designs_used(r))} | {invalid_cells(r)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+# ----- oracle-vs-estimated: the accuracy a user gets ------------------------------------------------
+
+# The figures that show what a user's calibration costs: the markers at rest (patterns), the pressed skin
+# (gaussian), the fitted index and depth (refraction), and the experiments that reconstruct through the twin.
+CALIBRATION_METRICS: dict[str, tuple[str, ...]] = {
+    "patterns": ("localisation_rms_mm_circular", "localisation_rms_mm_hexagon", "localisation_rms_mm_square",
+                 "localisation_max_mm", "identity_correct_fraction_min"),
+    "gaussian": ("rms_vs_true_skin_mm", "rms_vs_cad_mm", "centre_error_mm_skin050", "centre_error_mm_skin150",
+                 "matched_fraction_min"),
+    "refraction": ("n_fit", "exact_depth_error_rms_mm", "exact_absolute_error_rms_mm", "linear_depth_error_rms_mm"),
+    "tracking": ("dtrc_correct_rate_min", "dtrc_wrong_ids", "nn_correct_rate_min", "nn_wrong_ids"),
+    "sine": ("valid_cells", "upper_rms_mm", "lowest_point_rms_mm", "wrong_ids"),
+    "terrain": ("rms_err_mm_mean_all", "rms_err_reachable_mm_mean_all", "resolved_fraction_all"),
+}
+
+
+def _oracle_vs_estimated(records: Records, source: str, against: Records, against_source: str) -> str:
+    """The :data:`CALIBRATION_METRICS` of two quick runs side by side (``report DIR --against DIR2``, the report's
+    own comparison table): typically DIR run with ``--calibration oracle`` and DIR2 with ``estimated``."""
+    def run(recs: Records, where: str) -> tuple[str, str]:
+        chosen = [r for n, r in sorted(recs.items()) if n in CALIBRATION_METRICS]
+        if not chosen:
+            raise ResultsError(f"{where}: none of the records {', '.join(CALIBRATION_METRICS)}")
+        modes = sorted({calibration_mode(r) for r in chosen})
+        commits = sorted({str(r.get("commit", "unknown"))[:10] for r in chosen})
+        seeds = sorted({str(r.get("seed")) for r in chosen})
+        quick = {bool(r.get("quick")) for r in chosen}
+        kind = "quick" if quick == {True} else "full" if quick == {False} else "quick and full"
+        return " / ".join(modes), (f"{' / '.join(modes)} records in `{where}` (commit {', '.join(commits)}, "
+                                   f"{kind}, seed {', '.join(seeds)})")
+
+    mode_a, about_a = run(records, source)
+    mode_b, about_b = run(against, against_source)
+    table = comparison_table(records, against, CALIBRATION_METRICS, columns=(mode_a, mode_b))
+    if not table:
+        raise ResultsError(f"{source} and {against_source}: no experiment of {', '.join(CALIBRATION_METRICS)} "
+                           "ran in both")
+    return "\n".join([f"The {about_a} beside the {about_b}:", ""] + table)
 
 
 # ----- twin-speed: the twin's headline figures ----------------------------------------------------
@@ -221,6 +301,11 @@ def _tracking_identity(records: Records, source: str) -> str:
 
 BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
     ReadmeBlock("gate-figures", None, gate_figures_markdown, "every metric the CI gate guards, from a quick run"),
+    ReadmeBlock("quick-experiments", None, _quick_experiments,
+                "one row per experiment of a quick run: the paper's figures and claims beside this run's"),
+    ReadmeBlock("oracle-vs-estimated", None, _oracle_vs_estimated,
+                "the calibration-sensitive figures of an oracle and an estimated quick run side by side",
+                against=True),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
                 "wrong ids and coverage per defect condition and pattern"),
@@ -229,15 +314,28 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
 )}
 
 
-def render_block(name: str, records: Records, source: str) -> str:
-    """Block ``name`` written from ``records`` (the results directory ``source``), marker lines included."""
+README_BEGIN = begin_marker("gate-figures")
+README_END = end_marker("gate-figures")
+
+
+def render_block(name: str, records: Records, source: str,
+                 against: tuple[str, Records] | None = None) -> str:
+    """Block ``name`` written from ``records`` (the results directory ``source``; for a block that compares two
+    runs, also ``against`` = (directory, records) of the other), marker lines included."""
     block = BLOCKS.get(name)
     if block is None:
         raise ResultsError(f"README block {name!r}: unknown; known blocks: {', '.join(BLOCKS)}")
     if block.experiment is not None and block.experiment not in records:
         raise ResultsError(f"{source}: no {block.experiment!r} record: the {name} block is written from a "
                            f"`stereotactip bench {block.experiment}` results directory")
-    return "\n".join([begin_marker(name), "", block.body(records, source), "", end_marker(name)])
+    if block.against:
+        if against is None:
+            raise ResultsError(f"README block {name}: compares two runs: `stereotactip report DIR --against DIR2 "
+                               f"--readme README.md --block {name}`")
+        body = block.body(records, source, against[1], against[0])
+    else:
+        body = block.body(records, source)
+    return "\n".join([begin_marker(name), "", body, "", end_marker(name)])
 
 
 _BEGIN = re.compile(r"^<!-- report:([a-z0-9-]+):begin\b.*-->$", re.M)
@@ -254,9 +352,11 @@ def readme_blocks(text: str) -> dict[str, str]:
     return out
 
 
-def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("gate-figures",)) -> Path:
-    """Rewrite the named ``blocks`` of ``readme`` from the records in ``records_dir`` (atomically); everything
-    else is kept. Each block must stand exactly once, its begin line before its end line."""
+def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("gate-figures",),
+                  against_dir: Path | None = None) -> Path:
+    """Rewrite the named ``blocks`` of ``readme`` from the records in ``records_dir`` (and, for a block that
+    compares two runs, ``against_dir``) atomically; everything else is kept. Each block must stand exactly once,
+    its begin line before its end line."""
     from pipeline.io.atomic import atomic_write_text
 
     readme = Path(readme)
@@ -265,6 +365,7 @@ def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("g
     except (OSError, UnicodeDecodeError) as exc:
         raise ResultsError(f"README {readme}: unreadable ({type(exc).__name__})") from None
     records = load_records(Path(records_dir))
+    against = None if against_dir is None else (str(against_dir), load_records(Path(against_dir)))
     for name in blocks:
         begin, end = begin_marker(name), end_marker(name)
         if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
@@ -272,6 +373,6 @@ def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("g
                                f"followed by {end!r}")
         head, rest = text.split(begin, 1)
         _, tail = rest.split(end, 1)
-        text = head + render_block(name, records, str(records_dir)) + tail
+        text = head + render_block(name, records, str(records_dir), against) + tail
     atomic_write_text(readme, text)
     return readme

@@ -18,7 +18,8 @@ from typing import Any, Mapping
 from benchmarks.results import ResultsError, load_records
 from benchmarks.thresholds import check, load_thresholds
 
-__all__ = ["write_report", "render_report"]
+__all__ = ["write_report", "render_report", "calibration_comparison", "calibration_mode", "comparison_table", "invalid_cells", "designs_used",
+           "paper_figures"]
 
 
 def _fmt(value: Any, digits: int = 4) -> str:
@@ -41,33 +42,76 @@ def _md_escape(text: str) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
 
 
+def invalid_cells(rec: Mapping[str, Any]) -> str:
+    """How many of a record's twin cells failed the twin's physics checks, "N of M" (bold when any did), or "—"
+    for an experiment that does not count them."""
+    inv, val = ((rec.get("metrics") or {}).get(k, {}).get("value") for k in ("invalid_cells", "valid_cells"))
+    if inv is None:
+        return "—"
+    if val is not None and inv:
+        return f"**{inv:g}** of {inv + val:g}"
+    return f"{inv:g}" + (f" of {inv + val:g}" if val is not None else "")
+
+
+def designs_used(rec: Mapping[str, Any]) -> str:
+    """The sensor designs a record's cells ran on, comma-separated."""
+    return ", ".join(rec.get("designs_used") or [rec["design"].get("name", "?")])
+
+
+def paper_figures(rec: Mapping[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """A record's declared paper figures next to its measurement: (metric, paper value, this run's value, unit,
+    where in the paper), values formatted."""
+    out = []
+    for metric, p in (rec.get("paper") or {}).items():
+        m = (rec.get("metrics") or {}).get(metric)
+        out.append((metric, _fmt(p["value"]), _fmt(m["value"] if m else None), p["unit"], p["text"]))
+    return out
+
+
+def calibration_mode(rec: Mapping[str, Any]) -> str:
+    """The calibration a record's pipeline was given: "oracle" (the twin's exact sensor) or "estimated"."""
+    return (rec.get("calibration") or {}).get("mode", "oracle")
+
+
+def comparison_table(records: Mapping[str, Mapping[str, Any]], against: Mapping[str, Mapping[str, Any]],
+                     metrics: Mapping[str, tuple[str, ...]] | None = None,
+                     columns: tuple[str, str] = ("this run", "other run")) -> list[str]:
+    """Markdown table lines: the metrics of the experiments that ran (status ok) in both ``records`` and
+    ``against``, side by side under each record's calibration mode, with the difference (other − this); empty
+    when no experiment ran in both. ``metrics`` keeps only these experiments and metrics, in its order."""
+    names = list(metrics) if metrics is not None else sorted(records)
+    common = [n for n in names if n in records and n in against and records[n].get("status") == "ok"
+              and against[n].get("status") == "ok"]
+    if not common:
+        return []
+    lines = [f"| experiment | metric | {columns[0]} | {columns[1]} | {columns[1].split()[0]} − {columns[0].split()[0]} "
+             "| unit |", "| --- | --- | --- | --- | --- | --- |"]
+    for name in common:
+        a, b = records[name], against[name]
+        label_a = f"{calibration_mode(a)}{' quick' if a.get('quick') else ''}"
+        label_b = f"{calibration_mode(b)}{' quick' if b.get('quick') else ''}"
+        rows = []
+        for metric in (metrics[name] if metrics is not None else a.get("metrics", {})):
+            ma, mb = a.get("metrics", {}).get(metric), b.get("metrics", {}).get(metric)
+            if ma is None or mb is None:
+                continue
+            va, vb = ma.get("value"), mb.get("value")
+            diff = (vb - va) if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else None
+            rows.append(f"| {name} | {metric} | {_fmt(va)} | {_fmt(vb)} | {_fmt(diff, 3)} | {ma.get('unit', '')} |")
+        if rows or metrics is None:         # a chosen experiment without any chosen metric in both is left out
+            lines += [f"| **{name}** | | {label_a} | {label_b} | | |"] + rows
+    return lines
+
+
 def calibration_comparison(records: Mapping[str, Mapping[str, Any]], against: Mapping[str, Mapping[str, Any]],
                            against_name: str) -> list[str]:
     """Markdown lines: every metric of the experiments that both ``records`` and ``against`` hold, side by side
     under each record's calibration mode (e.g. oracle | estimated), with the difference."""
-    def mode(r):
-        return (r.get("calibration") or {}).get("mode", "oracle")
-
-    common = [n for n in sorted(records) if n in against and records[n].get("status") == "ok"
-              and against[n].get("status") == "ok"]
     lines = ["## Side by side: this run and " + _md_escape(against_name), "",
              "Each experiment's metrics in this directory and in the other one, under the calibration mode each "
              "was run with (`--calibration oracle`: the twin's exact sensor; `estimated`: what a user has).", ""]
-    if not common:
-        return lines + ["No experiment ran in both directories.", ""]
-    lines += ["| experiment | metric | this run | other run | other − this | unit |", "| --- | --- | --- | --- | --- | --- |"]
-    for name in common:
-        a, b = records[name], against[name]
-        label_a, label_b = f"{mode(a)}{' quick' if a.get('quick') else ''}", f"{mode(b)}{' quick' if b.get('quick') else ''}"
-        lines.append(f"| **{name}** | | {label_a} | {label_b} | | |")
-        for metric, ma in a.get("metrics", {}).items():
-            mb = b.get("metrics", {}).get(metric)
-            if mb is None:
-                continue
-            va, vb = ma.get("value"), mb.get("value")
-            diff = (vb - va) if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else None
-            lines.append(f"| {name} | {metric} | {_fmt(va)} | {_fmt(vb)} | {_fmt(diff, 3)} | {ma.get('unit', '')} |")
-    return lines + [""]
+    table = comparison_table(records, against)
+    return lines + (table or ["No experiment ran in both directories."]) + [""]
 
 
 def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
@@ -89,7 +133,7 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
                   f"- variant: {'quick' if quick == {True} else 'full' if quick == {False} else 'mixed quick/full'}",
                   f"- seed(s): {', '.join(map(str, seeds))}",
                   f"- total wall time: {total:.1f} s",
-                  f"- versions: " + ", ".join(f"{k} {val}" for k, val in v.items()), ""]
+                  "- versions: " + ", ".join(f"{k} {val}" for k, val in v.items()), ""]
 
     lines += ["## Summary", "",
               "Twin cells failing their physics checks (skin > 0.05 mm inside the indenter, unsettled, MuJoCo "
@@ -98,21 +142,16 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
               "| --- | --- | --- | --- | --- |"]
     for name, r in recs.items():
         status = r["status"] if r["status"] == "ok" else f"**{r['status']}**"
-        inv, val = (r["metrics"].get(k, {}).get("value") for k in ("invalid_cells", "valid_cells"))
-        phys = "—" if inv is None else (f"**{inv:g}** of {inv + val:g}" if val is not None and inv
-                                       else f"{inv:g}" + (f" of {inv + val:g}" if val is not None else ""))
-        lines.append(f"| {name} | {status} | {_fmt(r.get('wall_time_s'), 3)} | {phys} | "
-                     f"{_md_escape(', '.join(r.get('designs_used') or [r['design'].get('name', '?')]))} |")
+        lines.append(f"| {name} | {status} | {_fmt(r.get('wall_time_s'), 3)} | {invalid_cells(r)} | "
+                     f"{_md_escape(designs_used(r))} |")
     lines.append("")
 
     lines += ["## Paper figure vs this run", "",
               "| experiment | quantity | paper | this run | unit | where in the paper |",
               "| --- | --- | --- | --- | --- | --- |"]
     for name, r in recs.items():
-        for metric, p in r.get("paper", {}).items():
-            m = r["metrics"].get(metric)
-            lines.append(f"| {name} | {metric} | {_fmt(p['value'])} | {_fmt(m['value'] if m else None)} | "
-                         f"{p['unit']} | {_md_escape(p['text'])} |")
+        for metric, paper, measured, unit, where in paper_figures(r):
+            lines.append(f"| {name} | {metric} | {paper} | {measured} | {unit} | {_md_escape(where)} |")
     lines += ["", "Trends and qualitative claims:", "",
               "| experiment | paper's claim | this run | verdict |", "| --- | --- | --- | --- |"]
     for name, r in recs.items():

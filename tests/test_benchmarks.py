@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -505,24 +506,27 @@ def test_readme_shows_every_metric_the_ci_gate_guards():
 
 
 def test_readme_headline_blocks_match_the_records_they_were_written_from():
-    """The README's headline tables (twin speed, identification coverage) are generated blocks: each is written
-    again from the record it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
-    figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
-    fails here."""
-    from benchmarks.readme_blocks import readme_blocks, render_block
+    """The README's headline tables (twin speed, identification coverage, tracking, the quick run's experiments)
+    are generated blocks: each is written again from the records it names (kept in docs/records/) and must equal
+    the README's text, so a hand edit of a figure, or a record replaced without rerunning
+    `stereotactip report DIR --readme README.md --block NAME`, fails here."""
+    from benchmarks.readme_blocks import BLOCKS, readme_blocks, render_block
 
     root = Path(__file__).resolve().parents[1]
     blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
-    assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity"} <= set(blocks)
+    assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
+            "quick-experiments", "oracle-vs-estimated"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # written from the CI run's directory; checked metric by metric above
             continue
-        source = text.split("` record in `", 1)[1].split("`", 1)[0]
-        assert source.startswith("docs/records/"), f"README block {name}: its record is not kept in docs/records/"
-        records = res.load_records(root / source)
-        assert render_block(name, records, source) == text, (
-            f"README block {name} differs from {source}: rerun `stereotactip report {source} --readme README.md "
-            f"--block {name}`")
+        source, *other = re.findall(r" records? in `([^`]+)`", text)     # a block of two runs names both
+        for where in (source, *other):
+            assert where.startswith("docs/records/"), f"README block {name}: {where} is not kept in docs/records/"
+        against = (other[0], res.load_records(root / other[0])) if BLOCKS[name].against else None
+        command = f"{source} --against {other[0]}" if against else source
+        assert render_block(name, res.load_records(root / source), source, against) == text, (
+            f"README block {name} differs from its records: rerun `stereotactip report {command} "
+            f"--readme README.md --block {name}`")
 
 
 def test_readme_block_is_written_from_its_experiment_only(tmp_path):
@@ -547,6 +551,35 @@ def test_readme_block_is_written_from_its_experiment_only(tmp_path):
         update_readme(readme, run, ("identification-coverage",))
     with pytest.raises(res.ResultsError, match="needs exactly one gate-figures block"):
         update_readme(readme, run)
+
+
+def test_readme_block_of_two_runs_needs_the_other_run(tmp_path):
+    """The oracle-vs-estimated block compares two directories: written without `--against` it is a clear
+    error; a run against itself shows its chosen figures with no difference, under each run's calibration."""
+    from benchmarks.readme_blocks import (CALIBRATION_METRICS, begin_marker, end_marker, render_block,
+                                          update_readme)
+
+    root = Path(__file__).resolve().parents[1]
+    source = "docs/records/quick-experiments"
+    records = res.load_records(root / source)
+    with pytest.raises(res.ResultsError, match="--against DIR2"):
+        render_block("oracle-vs-estimated", records, source)
+    text = render_block("oracle-vs-estimated", records, source, (source, records))
+    rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| ") and "**" not in line]
+    metrics = {(c[0].strip(), c[1].strip()) for c in rows[2:]}
+    assert metrics <= {(e, m) for e, ms in CALIBRATION_METRICS.items() for m in ms} and len(metrics) > 10
+    assert {c[4].strip() for c in rows[2:]} <= {"0", "—"}
+    readme = tmp_path / "README.md"
+    readme.write_text(f"{begin_marker('oracle-vs-estimated')}\n{end_marker('oracle-vs-estimated')}\n")
+    with pytest.raises(res.ResultsError, match="compares two runs"):
+        update_readme(readme, root / source, ("oracle-vs-estimated",))
+    run = tmp_path / "run"         # the report pages are written beside the records: a copy keeps docs/ clean
+    run.mkdir()
+    for name in ("patterns", "refraction"):
+        (run / f"{name}.json").write_bytes((root / source / f"{name}.json").read_bytes())
+    assert main(["report", str(run), "--against", str(run), "--readme", str(readme),
+                 "--block", "oracle-vs-estimated"]) == 0
+    assert "| **patterns** | | estimated quick | estimated quick | | |" in readme.read_text()
 
 
 def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy, tmp_path, monkeypatch):

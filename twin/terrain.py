@@ -243,8 +243,6 @@ class TerrainMap:
     def to_mesh(self, *, stride: int = 1, base_mm: float = BASE_MM):
         """Watertight trimesh of the print: the relief on top (map frame), a base slab below z = 0
         down to ``-base_mm``, vertical walls on the four sides. ``stride`` decimates the grid."""
-        import trimesh
-
         x, y, z = self.x_mm[::stride], self.y_mm[::stride], self.z_mm[::stride, ::stride]
         # stretch the outermost cell centres onto the print's edges so the mesh is 320 x 160
         x = x.copy(); y = y.copy()

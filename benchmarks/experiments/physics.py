@@ -354,7 +354,7 @@ def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], pr
         f"uniform gel (ν = {layer.nu:g}), nodal volumetric stiffness on a mesh refined through the thickness "
         f"({len(LAYERED_GEL_LEVELS_MM)} gel levels): force within {FORCE_TOL:.0%} of the bonded-layer Hertz solution "
         "at every depth, without volumetric locking",
-        f"FE / theory " + ", ".join(f"{x:.2f}" for x in rl) + f" (median {np.median(rl):.2f}); contact radius / √(Rδ) "
+        "FE / theory " + ", ".join(f"{x:.2f}" for x in rl) + f" (median {np.median(rl):.2f}); contact radius / √(Rδ) "
         f"{m['contact_radius_ratio_uniform_nodal_layered_median']:.2f} (median; the mesh's 1.5 mm in-plane spacing)",
         bool(max(rl) <= 1 + FORCE_TOL and min(rl) >= 1 - FORCE_TOL)))
     out.findings.append(Finding(

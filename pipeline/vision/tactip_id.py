@@ -274,7 +274,6 @@ def frame_stats(grey: np.ndarray, blobs: Blobs) -> dict:
     h, w = grey.shape
     r = np.sqrt(2.0) * blobs.sigma_px
     yy, xx = np.mgrid[-12:13, -12:13]
-    rr = np.hypot(xx, yy)
     core, ring = [], []
     g = grey.astype(np.float64)
     for (u, v), rad in zip(blobs.xy_px, r):
