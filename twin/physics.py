@@ -46,6 +46,17 @@ __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM"
 FRICTION_SETTLE_MAX_STEPS = 1200  # with friction a dragged contact relaxes by its anchors sliding at most
                                   # stick.STICK_MAX_SLIDE_MM a step: the letter 'o' after its rapid 2 mm + 2 mm
                                   # move settled in 897 steps (damped continuation off; 400 + 400 damped did not)
+FRICTION_SETTLE_DAMPING_PER_S = 30.0  # with friction a settle runs with mass-proportional DOF damping c = α m (α /s):
+                                  # the stuck skin's ringing then dies in fewer steps, and with each step costing
+                                  # ~300 CG iterations at the stick tolerance that is the press's cost. The
+                                  # equilibrium is where the forces balance, which damping does not move (σ² = 10,
+                                  # 5 mm, μ = 1: settle 135 -> 47 steps, 12.6 -> 5.2 s, markers within 0.012 mm
+                                  # of the undamped settle, as close as CG at 1e-9 instead of 1e-10 comes; α = 10:
+                                  # 63 steps, 0.009 mm; α = 60 / 100: 43 / 35 steps but 0.019 / 0.026 mm, the damped
+                                  # skin creeping slowly enough to pass the settle criterion short of equilibrium).
+                                  # A sliding contact stops a little less relaxed: 10 mm sphere 1.5 mm, slid 0.3 mm
+                                  # at μ = 0.3, Q/P 0.330 instead of 0.306, the tip following 0.61 instead of 0.56
+                                  # of the slide (μ = 1: 0.95 vs 0.94, Q/P 0.58 vs 0.55)
 MAX_INCREMENT_MM = 0.1       # largest indenter move per physics step while clear of the skin
 CONTACT_INCREMENT_MM = 0.06  # ... and while touching it. A contact vertex lags the (zero-velocity) mocap by about
                              # 4 ζ² increments (the steady ramp error of the contact's reference dynamics: time
@@ -265,15 +276,23 @@ class SkinSim(SkinReadout):
         damped continuation, default ``SETTLE_MAX_STEPS``, with friction ``FRICTION_SETTLE_MAX_STEPS``). With
         friction the stick anchors count as markers: a contact still sliding is not at equilibrium even when the
         markers barely move (a 0.3 mm slide at mu = 0.3 looked settled with the anchors still sliding, Q/P 0.385,
-        relaxing to 0.31)."""
+        relaxing to 0.31). With friction the settle is damped (``FRICTION_SETTLE_DAMPING_PER_S``)."""
         if max_steps is None:
             max_steps = FRICTION_SETTLE_MAX_STEPS if len(self._stick_eq) else SETTLE_MAX_STEPS
 
         def with_anchors():
             return (np.vstack([self.markers()[0], units.m_to_mm(self._stick_anchor)]),)
-        markers = with_anchors if len(self._stick_eq) else self.markers
-        return solve.settle(self.step, markers, self.model, tol_mm=tol_mm, consecutive=consecutive,
-                            max_steps=max_steps, abort=abort, damped_steps=damped_steps)
+        if not len(self._stick_eq):
+            return solve.settle(self.step, self.markers, self.model, tol_mm=tol_mm, consecutive=consecutive,
+                                max_steps=max_steps, abort=abort, damped_steps=damped_steps)
+        saved = self.model.dof_damping.copy()
+        mass = self.model.body_mass[self.model.dof_bodyid]
+        self.model.dof_damping[:] = saved + FRICTION_SETTLE_DAMPING_PER_S * mass   # FRICTION_SETTLE_DAMPING_PER_S
+        try:
+            return solve.settle(self.step, with_anchors, self.model, tol_mm=tol_mm, consecutive=consecutive,
+                                max_steps=max_steps, abort=abort, damped_steps=damped_steps)
+        finally:
+            self.model.dof_damping[:] = saved
 
     # ----- direct quasi-static solve ---------------------------------------------------------
     def _nodes_from_qpos(self) -> np.ndarray:
