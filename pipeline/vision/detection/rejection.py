@@ -319,6 +319,10 @@ PAIR_MIN_SCALE_FRACTION = 0.9
 #: line between two touching pins reads 0.57-0.82; a single marker's flat top has none.
 PAIR_PEAK_FRACTION = 0.9
 PAIR_DIP = 0.85
+#: Only blobs whose centre pixel is below this fraction of the brightest pixel within half their
+#: radius (grey levels; the dark line between two pins reads 0.66-0.79 of their plateau, a marker's
+#: flat top ~1) are profiled.
+PAIR_CENTRE_FRACTION = 0.92
 #: A half whose centroid lies closer than this fraction of the two halves' distance to another blob
 #: is that blob's pin, already found: only the other half replaces the blob (re-centred on its own pin).
 PAIR_TAKEN_FRACTION = 0.5
@@ -355,16 +359,27 @@ def separate_pairs(grey: np.ndarray, cand: np.ndarray, xy: np.ndarray,
     ``LOCAL_SIZE_NEIGHBOURS + 1`` blobs.
     """
     n = len(xy)
-    if n < LOCAL_SIZE_NEIGHBOURS + 1:
+    h, w = grey.shape
+    which = np.flatnonzero(cand[:, ELONGATION] >= PAIR_MIN_ELONGATION)
+    if n < LOCAL_SIZE_NEIGHBOURS + 1 or len(which) == 0:
         return cand, xy
-    tree = cKDTree(xy)
-    _, nb = tree.query(xy, k=LOCAL_SIZE_NEIGHBOURS + 1)
-    local = np.median(cand[nb[:, 1:], SIGMA], axis=1)
-    which = np.flatnonzero((cand[:, ELONGATION] >= PAIR_MIN_ELONGATION)
-                           & (cand[:, SIGMA] >= PAIR_MIN_SCALE_FRACTION * local))
+    # the centre of a pair's blob lies on the dark line between the pins; a marker's on its flat top
+    ix = np.clip(np.rint(xy[which, 0]).astype(np.intp), 0, w - 1)
+    iy = np.clip(np.rint(xy[which, 1]).astype(np.intp), 0, h - 1)
+    reach = max(1, int(np.ceil(RADIUS_PER_SIGMA * float(cand[which, SIGMA].max()) / 2)))
+    off = np.arange(-reach, reach + 1)
+    ox, oy = np.meshgrid(off, off)
+    top = grey[np.clip(iy[:, None] + oy.ravel(), 0, h - 1), np.clip(ix[:, None] + ox.ravel(), 0, w - 1)].max(axis=1)
+    which = which[grey[iy, ix] < PAIR_CENTRE_FRACTION * top]
     if len(which) == 0:
         return cand, xy
-    h, w = grey.shape
+    tree = cKDTree(xy)
+    _, nb = tree.query(xy[which], k=LOCAL_SIZE_NEIGHBOURS + 1)
+    local = np.full(n, np.inf)
+    local[which] = np.median(cand[nb[:, 1:], SIGMA], axis=1)
+    which = which[cand[which, SIGMA] >= PAIR_MIN_SCALE_FRACTION * local[which]]
+    if len(which) == 0:
+        return cand, xy
     drop = np.zeros(n, bool)
     new_rows, new_xy = [], []
     for i in which:
