@@ -10,7 +10,7 @@ from pipeline.vision.detection.images import to_grey
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import spacing_suppress, suppress
 from pipeline.vision.detection.photometry import refine_and_measure
-from pipeline.vision.detection.rejection import screen, separate_debris
+from pipeline.vision.detection.rejection import screen, separate_debris, separate_pairs
 from pipeline.vision.detection.scale_space import find_candidates
 
 
@@ -63,6 +63,8 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
     b = params.border_px
     keep &= (xy[:, 0] >= b) & (xy[:, 0] <= w - 1 - b) & (xy[:, 1] >= b) & (xy[:, 1] <= h - 1 - b)
     xy, cand = xy[keep], cand[keep]
+    if params.rejections:
+        cand, xy = separate_pairs(grey, cand, xy, params)
     if params.min_spacing_fraction is not None and len(xy) >= 3:
         keep = spacing_suppress(xy, cand[:, RESPONSE], params.min_spacing_fraction)
         xy, cand = xy[keep], cand[keep]

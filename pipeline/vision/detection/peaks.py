@@ -113,34 +113,84 @@ def peak_kernel(g, doh, lxx, lyy, lxy, offs, hs, ws, fxs, fys, log_s):
     return out[:m]
 
 
+#: Two candidates whose scales differ by at most this ratio (one step of the default sqrt(2) scale
+#: grid) are blobs of one size: in :func:`suppress`, pins side by side rather than a speck and the
+#: marker it lies on.
+SIBLING_SCALE_RATIO = math.sqrt(2.0)
+#: ... and lie beside each other: centres at least this fraction of the sum of their radii apart
+#: (pins squeezed into touching measured 0.73-1.02, the middle one of three in a row the closest; a
+#: marker's own weaker, off-centre responses lie within it, ~0.58 on the real TacTip frames).
+SIBLING_MIN_SEPARATION = 0.65
+#: ... and answer comparably: at least this fraction of the survivor's response (squeezed pins measured
+#: 0.38-0.74 of their brighter neighbour's; the faint far edge of a marker whose own response a speck
+#: on it dropped, 0.28-0.29 on the real TacTip frames).
+SIBLING_MIN_RESPONSE_FRACTION = 0.33
+
+
 def suppress(cand: np.ndarray, min_sep: float) -> np.ndarray:
-    """Cross-scale NMS: drop a candidate when a stronger one lies within ``max(min_sep, r_i, r_j)``."""
+    """Cross-scale NMS: drop a candidate when a stronger one lies within ``max(min_sep, r_i, r_j)``,
+    except that a candidate already dropped does not drop one of the size of the survivor it fell to,
+    beside it (:func:`_suppress_kernel`)."""
     if len(cand) < 2:
         return cand
-    return cand[_suppress_kernel(cand, float(min_sep))]
+    return cand[_suppress_kernel(cand, float(min_sep), SIBLING_SCALE_RATIO, SIBLING_MIN_SEPARATION,
+                                 SIBLING_MIN_RESPONSE_FRACTION)]
 
 
 @numba.njit(cache=True, nogil=True)
-def _suppress_kernel(cand, min_sep):
-    """Keep mask of :func:`suppress`: for every pair closer than the larger of their radii
-    (``max(min_sep, sqrt(2) sigma)``) the weaker (ties: the later) is dropped, whether or not the
-    stronger survives. Pairs are found along x-sorted candidates within the largest radius."""
+def _suppress_kernel(cand, min_sep, sibling_ratio, sibling_separation, sibling_response):
+    """Keep mask of :func:`suppress`. Candidates are visited strongest first (ties: the earlier) and each
+    drops every weaker candidate closer than the larger of their radii (``max(min_sep, sqrt(2) sigma)``),
+    whether or not it survives itself -- except that a candidate dropped by a survivor of finer scale
+    than itself spares the candidates finer than itself whose scale is within ``sibling_ratio`` of that
+    survivor's, whose centre is at least ``sibling_separation`` x the sum of the two radii
+    (``sqrt(2) sigma``) away from the survivor's and whose response is at least ``sibling_response`` x
+    the survivor's.
+
+    Two pins squeezed together also answer as ONE blob at a coarser scale, centred between them and
+    with a radius reaching both. That merged response is weaker than the brighter pin's but can be
+    stronger than the dimmer one's: the brighter pin drops it, and it must not then drop the dimmer
+    pin, a blob of the brighter one's size beside it. A dropped candidate otherwise keeps suppressing:
+    a bright speck on a marker's edge drops the marker's own response, which must still drop the
+    marker's other, off-centre responses (coarser than the speck, or reached only through another
+    dropped response), or they would come back as a marker beside the speck. Neighbours are found along x-sorted candidates within the largest radius."""
     n = len(cand)
     radius = np.empty(n)
     for i in range(n):
         radius[i] = max(min_sep, RADIUS_PER_SIGMA * cand[i, SIGMA])
     r_max = radius.max()
     order = np.argsort(cand[:, X])
-    keep = np.ones(n, np.bool_)
+    pos = np.empty(n, np.intp)
     for a in range(n):
-        i = order[a]
-        for b in range(a + 1, n):
-            j = order[b]
-            if cand[j, X] - cand[i, X] > r_max:
-                break
-            if math.hypot(cand[i, X] - cand[j, X], cand[i, Y] - cand[j, Y]) < max(radius[i], radius[j]):
-                lo, hi = min(i, j), max(i, j)
-                keep[hi if cand[lo, RESPONSE] >= cand[hi, RESPONSE] else lo] = False
+        pos[order[a]] = a
+    by_rank = np.argsort(-cand[:, RESPONSE], kind="mergesort")   # stable: ties keep the earlier first
+    rank = np.empty(n, np.intp)
+    for a in range(n):
+        rank[by_rank[a]] = a
+    by = np.full(n, -1, np.intp)         # the candidate that dropped this one (the first, strongest)
+    keep = np.ones(n, np.bool_)
+    log_ratio = math.log(sibling_ratio)
+    for i in by_rank:
+        k = by[i]
+        # a merged response: dropped directly by a survivor of finer scale
+        merged = k >= 0 and keep[k] and cand[i, SIGMA] > cand[k, SIGMA]
+        for step in (-1, 1):
+            b = pos[i] + step
+            while 0 <= b < n:
+                j = order[b]
+                b += step
+                if abs(cand[j, X] - cand[i, X]) > r_max:
+                    break
+                if rank[j] < rank[i] or math.hypot(cand[i, X] - cand[j, X], cand[i, Y] - cand[j, Y]) >= max(radius[i], radius[j]):
+                    continue
+                if (merged and cand[j, SIGMA] < cand[i, SIGMA] and cand[j, RESPONSE] >= sibling_response * cand[k, RESPONSE]
+                        and abs(math.log(cand[j, SIGMA] / cand[k, SIGMA])) <= log_ratio
+                        and math.hypot(cand[k, X] - cand[j, X], cand[k, Y] - cand[j, Y])
+                        >= sibling_separation * RADIUS_PER_SIGMA * (cand[j, SIGMA] + cand[k, SIGMA])):
+                    continue
+                if keep[j]:
+                    keep[j] = False
+                    by[j] = i
     return keep
 
 
