@@ -11,10 +11,11 @@ Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.t
 2. **tilt frame** — the robot's tilt axes relative to the pattern (angle about the sensor axis and the
    handedness of the second tilt): 12 angles x 2 handedness on the 4 most tilted training taps, refined
    by a bounded 1-D search.
-3. **skin and pins** — the pins' height (the lever that turns the skin's rotation into marker motion), the
-   membrane's bending/stretching ratio (log-scale bounded search) and the depth offset of the labels (first
-   touch vs the labelled zero), each by a bounded 1-D search on the training taps (pin height, bending,
-   offset, pin height again), scored on the markers' displacement from the reference tap.
+3. **skin and pins** — the pins' rotation fraction (how much of the skin normal's rotation the pin axes
+   follow, ``twin.pin_rotation`` in [0, 1], with the design's pin height), the membrane's
+   bending/stretching ratio (log-scale bounded search) and the depth offset of the labels (first touch vs
+   the labelled zero), each by a bounded 1-D search on the training taps (pin rotation, bending, offset,
+   pin rotation again), scored on the markers' displacement from the reference tap.
 4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
    printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
 5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
@@ -22,7 +23,7 @@ Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.t
    renders, three fixed-point passes).
 
 The tilt-frame search scores the projected twin pin tips against the identified real markers (RMS px over
-the training frames); the pin, skin and depth-offset searches score the displacements (each frame minus
+the training frames); the pin-rotation, skin and depth-offset searches score the displacements (each frame minus
 the reference tap, twin against real), which the reference camera's rest-geometry bias does not enter.
 The held-out frames are never used here.
 
@@ -43,16 +44,16 @@ from scipy.optimize import least_squares, minimize_scalar
 from pipeline.design import SensorDesign, design_from_dict, to_dict
 from pipeline.vision.detection import detect_markers
 from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identify_sequence
-from twin.tactip import TAP_MODEL, DomeSkin, TapPose, check_monocular, project_markers, render_frame
+from twin.tactip import PIN_MODEL, TAP_MODEL, DomeSkin, TapPose, check_monocular, project_markers, render_frame
 from benchmarks.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
-__all__ = ["FitContext", "apply_params", "PIN_HEIGHT_RANGE_MM", "FITTED_POSITION_PARAMETERS", "camera_vector",
+__all__ = ["FitContext", "apply_params", "PIN_ROTATION_RANGE", "FITTED_POSITION_PARAMETERS", "camera_vector",
            "fit_layout", "fit_camera_reference", "fit_camera_all",
            "fit_physics", "fit_appearance", "CAM_KEYS", "LAYOUT_SEPARATIONS_MM"]
 
 CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
 #: parameters that place the markers: pin spacing, the camera, tilt frame and mirror, bending, depth offset,
-#: pin height
+#: pin rotation
 FITTED_POSITION_PARAMETERS = 1 + len(CAM_KEYS) + 4 + 1
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
 
@@ -112,6 +113,7 @@ class FitContext:
         self.ref = int(self.train[int(np.argmin(depths))])
         self.skin = DomeSkin(design)
         self._taps: dict = {}
+        self._skins: dict = {}
         self.ref_xy: np.ndarray | None = None
         self.real_xy: list[np.ndarray] = []
 
@@ -123,30 +125,42 @@ class FitContext:
         c.design = design
         c.skin = DomeSkin(design)
         c._taps = {}
+        c._skins = {}
         return c
 
     def key(self) -> str:
         return digest(*[f.path for f in self.frames], [f.pose for f in self.frames],
-                      json.dumps(to_dict(self.design), sort_keys=True, default=str), TAP_MODEL)
+                      json.dumps(to_dict(self.design), sort_keys=True, default=str), TAP_MODEL, PIN_MODEL)
 
     # ----- twin taps ----------------------------------------------------------------------
-    def _tap_key(self, i: int, params: dict) -> tuple:
-        return (i, tuple(sorted((a, round(b, 9)) for a, b in params.items()
-                                if a in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror"))))
+    _SKIN_KEYS = ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror")
+
+    def _tap_key(self, i: int, params: dict, keys=_SKIN_KEYS + ("pin_rotation",)) -> tuple:
+        return (i, tuple(sorted((a, round(b, 9)) for a, b in params.items() if a in keys)))
 
     def remember_tap(self, i: int, twin: dict, markers: tuple[np.ndarray, np.ndarray]) -> None:
         """Keep a tap computed elsewhere (a cell of the executor) as :meth:`tap` would have."""
         self._taps[self._tap_key(i, {**self.design.twin_params(), **twin})] = markers
 
-    def tap(self, i: int, twin: dict) -> tuple[np.ndarray, np.ndarray]:
+    def skin_state(self, i: int, twin: dict) -> np.ndarray:
+        """The tapped skin's nodes of frame ``i`` (the pins do not enter the solve: one state serves every
+        pin rotation)."""
         params = {**self.design.twin_params(), **twin}
-        k = self._tap_key(i, params)
-        if k not in self._taps:
+        k = self._tap_key(i, params, self._SKIN_KEYS)
+        if k not in self._skins:
             X, info = self.skin.tap(self.frames[i].pose, params)
             if not info["converged"]:
                 raise TapDataError(f"frame {self.frames[i].path.name}: the tap did not converge "
                                    f"(iterations {info['iterations']}, penetration {info['penetration_max_mm']:.3f} mm)")
-            self._taps[k] = self.skin.markers(X)
+            self._skins[k] = X
+        return self._skins[k]
+
+    def tap(self, i: int, twin: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Pin tips and pin axes of frame ``i``'s tap with the twin parameters ``twin`` (over the design's)."""
+        params = {**self.design.twin_params(), **twin}
+        k = self._tap_key(i, params)
+        if k not in self._taps:
+            self._taps[k] = self.skin.markers(self.skin_state(i, twin), params["pin_rotation"])
         return self._taps[k]
 
     # ----- identification -----------------------------------------------------------------
@@ -167,16 +181,13 @@ class FitContext:
             out.append(r[np.all(np.isfinite(r), axis=1)].ravel())
         return np.concatenate(out)
 
-    def displacement_rms(self, design: SensorDesign, idx, twin: dict, pin_height_mm: float | None = None) -> float:
+    def displacement_rms(self, design: SensorDesign, idx, twin: dict) -> float:
         """RMS px of the twin's marker displacements from the reference tap against the real ones: the rest
-        geometry and the camera's bias cancel to first order, what is left is how the markers move. With
-        ``pin_height_mm`` the pin tips are moved along their pins to that height (the skin solve does not
-        depend on it, so the taps are reused)."""
-        dh = 0.0 if pin_height_mm is None else pin_height_mm - self.design.pins.height_mm
-
+        geometry and the camera's bias cancel to first order, what is left is how the markers move. A new
+        ``pin_rotation`` in ``twin`` reuses the taps (the skin solve does not depend on it)."""
         def uv(i):
-            p, ax = self.tap(i, twin)
-            return project_markers(design, p + dh * ax)
+            p, _ = self.tap(i, twin)
+            return project_markers(design, p)
 
         u0, r0 = uv(self.ref), self.real_xy[self.ref]
         out = []
@@ -364,47 +375,51 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     r = minimize_scalar(f_psi, bounds=(psi0 - 30, psi0 + 30), method="bounded", options={"xatol": 1.0, "maxiter": 12})
     twin["tilt_frame_deg"] = float((r.x + 180) % 360 - 180)
     bar.update(1)
-    # the lever and the skin are fitted on how the markers move (displacement from the reference tap), not
-    # where they are: the reference camera was fitted with the nominal pins, a rest-geometry bias the
-    # positions would carry into both
-    f_h = lambda h: ctx.displacement_rms(design, search, twin, h)  # noqa: E731
-    pin_height = _fit_pin_height(ctx, f_h)
-    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv}, pin_height)  # noqa: E731
+    # the pins and the skin are fitted on how the markers move (displacement from the reference tap), not
+    # where they are: the reference camera was fitted with pins held normal to the skin, a rest-geometry
+    # bias the positions would carry into both
+    twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
+    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
     r = minimize_scalar(f_b, bounds=(-2.5, 1.5), method="bounded", options={"xatol": 0.05, "maxiter": 14})
     twin["bending_ratio"] = float(10 ** r.x)
     bar.update(1)
-    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v}, pin_height)  # noqa: E731
+    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
     r = minimize_scalar(f_d, bounds=(-1.5, 1.5), method="bounded", options={"xatol": 0.02, "maxiter": 12})
     twin["depth_offset_mm"] = float(r.x)
     bar.update(1)
-    f_h = lambda h: ctx.displacement_rms(design, search, twin, h)  # noqa: E731
-    pin_height = _fit_pin_height(ctx, f_h)
-    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv}, pin_height)  # noqa: E731
-    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v}, pin_height)  # noqa: E731
+    twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
+    f_a = lambda a: ctx.displacement_rms(design, search, {**twin, "pin_rotation": a})  # noqa: E731
+    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
+    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
     n_obs = sum(int(np.all(np.isfinite(ctx.real_xy[i]), axis=1).sum()) for i in search)
-    f0, p0 = f_h(pin_height), ctx.rms(design, search, twin)
+    f0, p0 = f_a(twin["pin_rotation"]), ctx.rms(design, search, twin)
+    # the curvature is taken inside [0, 1] (a pin cannot turn against the skin nor past it): at a bound,
+    # one step in from it
+    h_a = 0.05
+    a0 = min(max(twin["pin_rotation"], PIN_ROTATION_RANGE[0] + h_a), PIN_ROTATION_RANGE[1] - h_a)
     sd = {"log10_bending_ratio": _curvature_sd(f_b, math.log10(twin["bending_ratio"]), 0.15, f0, n_obs),
           "depth_offset_mm": _curvature_sd(f_d, twin["depth_offset_mm"], 0.1, f0, n_obs),
           "tilt_frame_deg": _curvature_sd(f_psi, twin["tilt_frame_deg"], 3.0, p0, n_obs),
-          "pin_height_mm": _curvature_sd(f_h, pin_height, 0.1, f0, n_obs)}
+          "pin_rotation": _curvature_sd(f_a, a0, h_a, f_a(a0), n_obs)}
     bar.update(1)
     return twin, {"grid": [[float(a), float(b), float(c)] for a, b, c in grid], "rms_px_search": p0,
-                  "displacement_rms_px_search": f0, "sd": sd, "pin_height_mm": pin_height,
+                  "displacement_rms_px_search": f0, "sd": sd, "pin_rotation": twin["pin_rotation"],
                   "search_frames": [ctx.frames[i].path.name for i in search]}
 
 
-#: the pin's lever (pin height, mm) is searched in this range: the marker (pin tip, ``markers.thickness_mm``
-#: long) must stay on the pin, and the gel (``optics.gel_thickness_mm``) bounds it from inside
-PIN_HEIGHT_RANGE_MM = (0.35, 4.0)
+#: the pin rotation fraction is searched over its physical range: 0, pins that keep their rest direction
+#: while the skin turns under them; 1, pins held normal to the skin
+PIN_ROTATION_RANGE = (0.0, 1.0)
 
 
-def _fit_pin_height(ctx: FitContext, f_h) -> float:
-    """The pin height (the lever that turns the skin's rotation into marker motion) by a bounded 1-D search;
-    the taps are shared by every candidate, so the search costs projections only."""
-    lo = max(PIN_HEIGHT_RANGE_MM[0], ctx.design.markers.thickness_mm + 0.05)
-    r = minimize_scalar(f_h, bounds=(lo, PIN_HEIGHT_RANGE_MM[1]), method="bounded",
-                        options={"xatol": 0.02, "maxiter": 20})
-    return float(r.x)
+def _fit_pin_rotation(ctx: FitContext, design: SensorDesign, search, twin: dict) -> float:
+    """The pins' rotation fraction by a bounded 1-D search on the markers' displacements, with the design's
+    pin height; the taps are shared by every candidate, so the search costs projections only. The bounded
+    search never evaluates the bounds themselves: they are scored too and kept when better."""
+    f = lambda a: ctx.displacement_rms(design, search, {**twin, "pin_rotation": a})  # noqa: E731
+    r = minimize_scalar(f, bounds=PIN_ROTATION_RANGE, method="bounded", options={"xatol": 0.005, "maxiter": 25})
+    best = min([(float(r.fun), float(r.x))] + [(f(a), a) for a in PIN_ROTATION_RANGE])
+    return float(best[1])
 
 
 # ----- stage 5: appearance -----------------------------------------------------------------

@@ -25,7 +25,7 @@ __all__ = ["fit_twin", "register", "cmd_fit", "PHYSICS_STAGE"]
 
 #: what the physics stage fits and scores (part of its cache key: a cached result of another version is
 #: recomputed, not reused)
-PHYSICS_STAGE = "tilt frame on positions; pin height, bending, depth offset on displacements"
+PHYSICS_STAGE = "tilt frame on positions; pin rotation, bending, depth offset on displacements"
 
 
 
@@ -64,14 +64,10 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
     s1 = _camera_reference_stage(st, ctx, design, twin0, s0)
     d1 = apply_params(design, s1["cam"])  # (design carries the fitted spacing)
     s23 = _physics_stage(st, ctx, d1, twin0, s1)
-    twin = s23["twin"]
-    pins = {"pin_height_mm": s23["report"]["pin_height_mm"]}
-    design = apply_params(design, pins)
-    ctx = ctx.with_design(design)
-    d1 = apply_params(d1, pins)
-    s4 = _camera_all_stage(st, ctx, d1, twin, s1, pins)
+    twin = s23["twin"]      # carries the fitted pin rotation; the pins keep the design's height
+    s4 = _camera_all_stage(st, ctx, d1, twin, s1)
     d4 = apply_params(design, s4["cam"])
-    s5 = _appearance_stage(st, ctx, d4, twin, s4, pins)
+    s5 = _appearance_stage(st, ctx, d4, twin, s4)
     bar.close()
     fitted = apply_params(d4, twin=s5["twin"], name=design.name + "_fitted")
     train_rms, held_rms = _write_fitted(out, ctx, fitted, s5["twin"])
@@ -80,14 +76,14 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
         "design": design.name, "out": str(out), "frames": len(ctx.frames),
         "train": [ctx.frames[i].path.name for i in ctx.train], "held_out": [ctx.frames[i].path.name for i in ctx.held],
         "reference": ctx.frames[ctx.ref].path.name, "camera": s4["report"], "physics": {
-            "values": {**{k: twin[k] for k in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror")},
-                       **pins},
+            "values": {k: twin[k] for k in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror",
+                                            "pin_rotation")},
             "sd": phys["sd"], "rms_px_search": phys["rms_px_search"]},
         "appearance": {"values": {k: s5["twin"][k] for k in ("marker_grey", "marker_shading", "background_grey",
                                                               "edge_px", "noise_grey", "marker_scale")},
                        "report": s5["report"]},
         "residuals": {"train_rms_px": train_rms, "held_out_rms_px": held_rms},
-        "separation_mm": s0["separation_mm"],
+        "separation_mm": s0["separation_mm"], "pin_height_mm": design.pins.height_mm,
         "fitted_parameters": FITTED_POSITION_PARAMETERS + 5, "seconds": time.time() - t0,
     }
     atomic_write_json(Path(str(out) + ".fit.json"), summary, indent=1)
@@ -147,24 +143,24 @@ def _physics_stage(st: _Stages, ctx: FitContext, d1, twin0: dict, s1: dict) -> d
     return s23
 
 
-def _camera_all_stage(st: _Stages, ctx: FitContext, d1, twin: dict, s1: dict, pins: dict) -> dict:
+def _camera_all_stage(st: _Stages, ctx: FitContext, d1, twin: dict, s1: dict) -> dict:
     """Stage 4: the camera refitted on every training tap with the fitted physics."""
     def fit():
         d, rep = fit_camera_all(ctx, d1, twin)
         return {"cam": rep["values"], "report": rep}
 
-    s4, _ = _cached(st.cache, "4_camera_all", digest(st.base_key, s1["cam"], twin, pins), fit)
+    s4, _ = _cached(st.cache, "4_camera_all", digest(st.base_key, s1["cam"], twin), fit)
     st.bar.update(1)
     return s4
 
 
-def _appearance_stage(st: _Stages, ctx: FitContext, d4, twin: dict, s4: dict, pins: dict) -> dict:
+def _appearance_stage(st: _Stages, ctx: FitContext, d4, twin: dict, s4: dict) -> dict:
     """Stage 5: marker and background appearance from the real frames' image statistics."""
     def fit():
         tw, rep = fit_appearance(ctx, d4, twin)
         return {"twin": tw, "report": rep}
 
-    s5, _ = _cached(st.cache, "5_appearance", digest(st.base_key, s4["cam"], twin, pins), fit)
+    s5, _ = _cached(st.cache, "5_appearance", digest(st.base_key, s4["cam"], twin), fit)
     st.bar.update(1)
     return s5
 
@@ -195,7 +191,8 @@ def _log_summary(log, summary: dict, c: dict, twin: dict, phys: dict, out: Path)
     log(f"  depth_offset_mm {twin['depth_offset_mm']:.3f} ± {phys['sd']['depth_offset_mm']:.3f}")
     log(f"  tilt_frame_deg  {twin['tilt_frame_deg']:.1f} ± {phys['sd']['tilt_frame_deg']:.1f}, "
         f"second tilt {'mirrored' if twin['tilt_mirror'] else 'as labelled'}")
-    log(f"  pin_height_mm   {summary['physics']['values']['pin_height_mm']:.3f} ± {phys['sd']['pin_height_mm']:.3f} "
+    log(f"  pin_rotation    {twin['pin_rotation']:.3f} ± {phys['sd']['pin_rotation']:.3f} "
+        f"(pins {summary['pin_height_mm']:.2f} mm, the design's) "
         f"(displacement RMS on the search taps {phys['displacement_rms_px_search']:.2f} px)")
     log("appearance: " + ", ".join(f"{k} {v:.3g}" for k, v in summary["appearance"]["values"].items()))
     log(f"residuals: train {train_rms:.2f} px, held out {held_rms:.2f} px (pin-tip RMS); wrote {out}")

@@ -76,6 +76,8 @@ def test_stereo_designs_keep_their_camera_pair():
     (lambda r: r["pattern"].__setitem__("mapping", "spiral"), "mapping"),
     (lambda r: r.__setitem__("twin", {"stiffness": 1.0}), "unknown key 'stiffness'"),
     (lambda r: r.__setitem__("twin", {"marker_grey": 300.0}), "marker_grey"),
+    (lambda r: r.__setitem__("twin", {"pin_rotation": 1.2}), "pin_rotation"),
+    (lambda r: r.__setitem__("twin", {"pin_rotation": -0.1}), "pin_rotation"),
     (lambda r: r["pattern"].__setitem__("separation_mm", 3.5), "does not fit on the dome"),
     (lambda r: r["camera"].__setitem__("fx_px", 5.0), "fx_px"),
 ])
@@ -117,23 +119,68 @@ def test_tap_respects_the_plane_and_keeps_the_gel_volume(skin, design, depth, ti
         assert p[-1] == pytest.approx([0, 0, -design.marker_depth_mm - depth], abs=0.02)
 
 
-def test_the_pin_height_is_a_lever_along_the_pin_the_fit_can_move_without_a_new_tap(skin, design):
-    """fit-twin searches the pin height on one set of taps: the skin does not depend on it, and a pin tip of
-    another height is the same tip moved along its pin. A shorter pin moves its marker less."""
-    from benchmarks.tactip_fit import apply_params
-    from twin.tactip import DomeSkin, TapPose
+@pytest.fixture(scope="module")
+def tilted_tap(skin, design):
+    from twin.tactip import TapPose
 
-    short = apply_params(design, {"pin_height_mm": 0.6})
-    assert short.pins.height_mm == pytest.approx(0.6)
-    assert short.marker_depth_mm == pytest.approx(design.skin.thickness_mm + 0.6)
     X, info = skin.tap(TapPose(3.5, 8.0, -6.0), design.twin_params())
     assert info["converged"]
-    p, ax = skin.markers(X)
-    p_short, ax_short = DomeSkin(short).markers(X)
-    np.testing.assert_allclose(p + (0.6 - design.pins.height_mm) * ax, p_short, atol=1e-9)
-    np.testing.assert_allclose(ax, ax_short)
-    rest, rest_short = skin.markers(skin.X0)[0], DomeSkin(short).markers(skin.X0)[0]
-    assert np.linalg.norm(p_short - rest_short, axis=1).mean() < np.linalg.norm(p - rest, axis=1).mean()
+    return X
+
+
+def test_pins_held_normal_to_the_skin_are_the_default_placement_bit_for_bit(skin, design, tilted_tap):
+    """pin_rotation = 1 (the default) is a pin normal to the deformed skin: each tip skin thickness + pin
+    height inside the outer surface along the deformed normal, exactly as before the pin rotation existed."""
+    X = tilted_tap
+    assert design.twin_params()["pin_rotation"] == 1.0
+    n = skin.normals(X)[: skin.n_markers]
+    old_tips, old_axes = X[: skin.n_markers] - design.marker_depth_mm * n, -n
+    for p, ax in (skin.markers(X), skin.markers(X, 1.0)):
+        np.testing.assert_array_equal(p, old_tips)
+        np.testing.assert_array_equal(ax, old_axes)
+
+
+def test_pins_that_do_not_rotate_keep_their_rest_direction(skin, design, tilted_tap):
+    """pin_rotation = 0: the pin's base follows the skin (skin thickness inside it, along its deformed normal)
+    and the pin keeps its rest direction, so the tip is base - pin height x rest normal."""
+    X = tilted_tap
+    n = skin.normals(X)[: skin.n_markers]
+    n0 = skin.normals(skin.X0)[: skin.n_markers]
+    p, ax = skin.markers(X, 0.0)
+    np.testing.assert_allclose(ax, -n0, atol=1e-12)
+    base = X[: skin.n_markers] - design.skin.thickness_mm * n
+    np.testing.assert_allclose(p, base - design.pins.height_mm * n0, atol=1e-12)
+    # at rest the fraction does not matter: no rotation to follow
+    for a in (0.0, 0.37, 1.0):
+        np.testing.assert_allclose(skin.markers(skin.X0, a)[0], skin.markers(skin.X0)[0], atol=1e-12)
+
+
+def test_a_pin_turns_by_its_fraction_of_the_skin_rotation_about_the_same_axis(skin, tilted_tap):
+    """Analytic: a normal turned by theta about x gives, at fraction alpha, the rest normal turned by
+    alpha x theta about x; on a tapped skin every pin's angle from rest is alpha x the normal's, in the
+    plane of the two normals. Pins that follow less of the rotation move their markers less."""
+    from twin.tactip import pin_axes
+
+    th = np.radians([0.0, 1e-10, 5.0, 40.0, 120.0])
+    n0 = np.tile([0.0, 0.0, 1.0], (len(th), 1))
+    turn = lambda t: np.column_stack([np.zeros_like(t), -np.sin(t), np.cos(t)])  # noqa: E731 - about x
+    for a in (0.0, 0.25, 0.5, 1.0):
+        np.testing.assert_allclose(pin_axes(n0, turn(th), a), turn(a * th), atol=1e-12)
+    X = tilted_tap
+    n0 = skin.normals(skin.X0)[: skin.n_markers]
+    n = skin.normals(X)[: skin.n_markers]
+    ang = lambda u, v: np.arctan2(np.linalg.norm(np.cross(u, v), axis=1), np.einsum("ij,ij->i", u, v))  # noqa: E731
+    moved = ang(n0, n) > 1e-3
+    assert moved.sum() > 50
+    prev = None
+    for a in (0.0, 0.3, 0.7, 1.0):
+        p, ax = skin.markers(X, a)
+        np.testing.assert_allclose(ang(n0, -ax)[moved], a * ang(n0, n)[moved], atol=1e-9)
+        coplanar = np.einsum("ij,ij->i", np.cross(n0, n), -ax)
+        np.testing.assert_allclose(coplanar, 0.0, atol=1e-12)
+        motion = np.linalg.norm(p - skin.markers(skin.X0)[0], axis=1)[moved].mean()
+        assert prev is None or motion > prev
+        prev = motion
 
 
 def test_tilt_moves_the_contact_towards_the_tilt(skin, design):
@@ -247,6 +294,11 @@ def test_camera_fit_on_a_real_tap_matches_most_pins(design, monkeypatch):
     monkeypatch.setattr(tf, "TAP_MODEL", tf.TAP_MODEL + " (changed)")
     assert ctx.key() != key
     monkeypatch.undo()
+    # ... nor one cached under another placement of the markers on the skin
+    monkeypatch.setattr(tf, "PIN_MODEL", tf.PIN_MODEL + " (changed)")
+    assert ctx.key() != key
+    monkeypatch.undo()
+    assert ctx.key() == key
     fitted, ref_xy, rep = fit_camera_reference(ctx, d.twin_params())
     assert rep["matched"] >= 290
     assert rep["rms_px"] < 4.0
@@ -254,6 +306,13 @@ def test_camera_fit_on_a_real_tap_matches_most_pins(design, monkeypatch):
     ctx.set_reference(ref_xy)
     counts = [int(np.isfinite(x[:, 0]).sum()) for x in ctx.real_xy]
     assert min(counts) >= 250
+    # the pin-rotation search reuses one skin solve per tap: another fraction is a new placement only
+    tw = d.twin_params()
+    p1, _ = ctx.tap(ctx.ref, tw)
+    solves = len(ctx._skins)
+    p0, _ = ctx.tap(ctx.ref, {**tw, "pin_rotation": 0.0})
+    assert len(ctx._skins) == solves and not np.allclose(p0, p1)
+    assert ctx.displacement_rms(fitted, [ctx.ref], {**tw, "pin_rotation": 0.3}) == pytest.approx(0.0, abs=1e-9)
 
 
 @needs_real

@@ -16,10 +16,12 @@ Physics (a reduced skin model, stated): the skin is a triangulated elastic membr
 The equilibrium is found by minimising the energy (L-BFGS, analytic gradient). A position-controlled tap
 into a rigid plane fixes the shape up to the stiffness *ratios*: the absolute modulus does not change the
 marker positions (it would scale the contact force, which the labelled frames do not record). Pins are
-rigid and normal to the skin: each marker sits ``skin thickness + pin height`` inside the outer surface
-along the deformed surface normal, which is what amplifies the skin's bending into marker motion. The pin
-height is that lever (``stereotactip fit-twin`` fits it: on the real 331-pin taps the nominal 2 mm pins
-moved the inner rings' markers 1.3-1.5x as far as the real ones).
+rigid, of the design's height, rooted on the skin's inner surface (skin thickness inside the outer surface
+along the deformed normal); the pin's axis turns by a fraction ``pin_rotation`` (alpha in [0, 1], the
+``[twin]`` key) of the skin normal's rotation from rest. A pin held normal to the skin (alpha = 1)
+amplifies the skin's bending into marker motion by its full length; the gel around the pins holds them
+back (alpha < 1), which is what ``stereotactip fit-twin`` identifies (on the real 331-pin taps pins held
+normal moved the inner rings' markers 1.3-1.5x as far as the real ones).
 
 Contact is frictionless. A no-slip contact (each touching node held where it touched and carried with the
 plane, the press followed in 0.5 mm steps) was measured on the real taps with the frictionless fit's camera
@@ -50,10 +52,13 @@ from scipy.spatial import Delaunay
 from pipeline.design import SensorDesign, marker_layout
 from pipeline.errors import UserError
 
-__all__ = ["TAP_MODEL", "TapPose", "DomeSkin", "tap_markers", "project_markers", "render_frame", "check_monocular"]
+__all__ = ["TAP_MODEL", "PIN_MODEL", "TapPose", "DomeSkin", "pin_axes", "tap_markers", "project_markers", "render_frame", "check_monocular"]
 
 #: what a tap means (part of the fit's cache keys: a fit cached under another meaning is recomputed)
 TAP_MODEL = "membrane: frictionless plane from first touch, pressed along the sensor axis"
+#: where a marker sits on a tapped skin (part of the fit's cache keys with TAP_MODEL)
+PIN_MODEL = ("rigid pins: base on the skin's inner surface along its normal, axis turned by pin_rotation of the "
+             "normal's rotation from rest, tip at the pin height along the axis")
 VOLUME_WEIGHT = 1e5      # energy per (relative volume change)^2: the gel fill is incompressible
 CONTACT_WEIGHT = 1e3     # energy per mm^2 of penetration into the plane
 SUPERSAMPLE = 4
@@ -142,6 +147,8 @@ class DomeSkin:
                    for k in range(3)]
         self.LtL = (self.L.T @ self.L).tocsr()
         self.LtLX0 = self.L.T @ self.LX0
+        #: the pins' rest directions (outward skin normals at rest): the pin rotation is measured from them
+        self.N0 = self.normals(X0)[: self.n_markers]
 
     # ----- geometry ---------------------------------------------------------------------
     def volume(self, X: np.ndarray) -> float:
@@ -156,10 +163,21 @@ class DomeSkin:
             np.add.at(vn, self.tri[:, k], fn)
         return vn / np.linalg.norm(vn, axis=1, keepdims=True)
 
-    def markers(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Marker (pin tip) centres and pin axes (pointing into the dome) of a skin state, (N, 3) each."""
+    def markers(self, X: np.ndarray, pin_rotation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Marker (pin tip) centres and pin axes (pointing into the dome) of a skin state, (N, 3) each.
+
+        The pin's base is on the skin's inner surface (skin thickness inside the outer surface, along the
+        deformed normal); its axis turns by ``pin_rotation`` (alpha, the design's ``twin.pin_rotation``
+        unless given) of the skin normal's rotation from rest, about the same axis: alpha = 1 is a pin
+        held normal to the skin, alpha = 0 a pin that keeps its rest direction while its base moves. The
+        tip is the pin's height along that axis from the base."""
+        a = self.design.twin_params()["pin_rotation"] if pin_rotation is None else float(pin_rotation)
         n = self.normals(X)[: self.n_markers]
-        return X[: self.n_markers] - self.design.marker_depth_mm * n, -n
+        x = X[: self.n_markers]
+        if a == 1.0:
+            return x - self.design.marker_depth_mm * n, -n
+        axis = pin_axes(self.N0, n, a)
+        return x - self.design.skin.thickness_mm * n - self.design.pins.height_mm * axis, -axis
 
     # ----- the tap ----------------------------------------------------------------------
     def plane(self, pose: TapPose, params: dict[str, float]) -> tuple[np.ndarray, float]:
@@ -273,6 +291,21 @@ class DomeSkin:
         info = {"energy": float(res.fun), "iterations": int(res.nit), "converged": bool(res.success),
                 "penetration_max_mm": max(pen, 0.0), "volume_change": (self.volume(X) - V0) / V0}
         return X.copy(), info
+
+
+def pin_axes(n0: np.ndarray, n: np.ndarray, alpha: float) -> np.ndarray:
+    """Unit pin directions (N, 3): each rest normal ``n0`` turned towards the deformed normal ``n`` by the
+    fraction ``alpha`` of the angle between them, about their common perpendicular (spherical
+    interpolation; alpha = 0 gives ``n0``, alpha = 1 gives ``n``)."""
+    c = np.clip(np.einsum("ij,ij->i", n0, n), -1.0, 1.0)
+    theta = np.arccos(c)
+    s = np.sin(theta)
+    small = s < 1e-9
+    s_safe = np.where(small, 1.0, s)
+    w0 = np.where(small, 1.0 - alpha, np.sin((1.0 - alpha) * theta) / s_safe)
+    w1 = np.where(small, alpha, np.sin(alpha * theta) / s_safe)
+    v = w0[:, None] * n0 + w1[:, None] * n
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def tap_markers(skin: DomeSkin, pose: TapPose, params: dict[str, float] | None = None):

@@ -270,6 +270,9 @@ def _validate_mono(d: SensorDesign, where: str) -> None:
     t = d.twin_params()
     if not t["bending_ratio"] > 0 or not t["edge_px"] > 0 or t["noise_grey"] < 0 or not t["marker_scale"] > 0:
         raise DesignError(f"{where}: twin: bending_ratio, edge_px and marker_scale must be > 0, noise_grey >= 0")
+    if not 0.0 <= t["pin_rotation"] <= 1.0:
+        raise DesignError(f"{where}: twin.pin_rotation: must be in [0, 1] (the fraction of the skin's rotation "
+                          f"the pins follow), got {t['pin_rotation']!r}")
     for key in ("marker_grey", "background_grey"):
         if not 0 <= t[key] <= 255:
             raise DesignError(f"{where}: twin.{key}: must be in [0, 255], got {t[key]!r}")
