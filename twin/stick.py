@@ -32,7 +32,7 @@ import numpy as np
 
 from twin import units
 
-__all__ = ["update", "anchor_offsets"]
+__all__ = ["update", "anchor_offsets", "to_indenter_frame"]
 
 STICK_FORCE_STEPS = 50      # steps of the running mean of a stuck vertex's constraint force
 STICK_SIGNIFICANCE = 2.0     # ... and slides only by the excess beyond this many standard errors of that mean
@@ -106,6 +106,12 @@ def anchor_offsets(anchor: np.ndarray, rest_m: np.ndarray, c: float, s: float) -
     """The ties' constants (K, 2): a vertex at rest position ``rest_m`` (world m) held at ``anchor`` (indenter
     frame, m) of an indenter yawed by (cos, sin) = (c, s) has q_vertex = constant + q_indenter along x and y."""
     return _rotate(anchor, c, s)[:, :2] - rest_m[:, :2]
+
+
+def to_indenter_frame(X: np.ndarray, p_ind: np.ndarray, yaw: float) -> np.ndarray:
+    """World points (K, 3) m relative to the indenter at ``p_ind`` yawed by ``yaw`` (rad), in its frame (m):
+    the frame of the anchors."""
+    return _rotate(X - p_ind, math.cos(yaw), -math.sin(yaw))
 
 
 def _rotate(v: np.ndarray, c: float, s: float) -> np.ndarray:
