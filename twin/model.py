@@ -311,7 +311,11 @@ def friction_solver_options(friction: float, o) -> None:
     Measured on a σ² = 10 Gaussian pressed 5 mm at μ = 1 (the settle undamped): CG at 1e-10 averaged 383
     iterations a step (45 of 228 steps at the 1000 cap); 1e-9: 315 iterations but 239 steps, no faster; 1e-8:
     1327 steps (1e-8 only while approaching: the approach 2.0 s instead of 2.1); a 200-iteration cap: 1341 steps; Newton at 1e-10:
-    4.6 iterations a step but the same 60 ms a step. The frictional press's cost is steps x CG iterations."""
+    4.6 iterations a step but the same 60 ms a step. The frictional press's cost is steps x CG iterations.
+    A step's iterations grow with the ties switched on (~100 with ~20 stuck vertices, 500-1000 with 130-300),
+    and no solver setting measured lowers them (σ² = 10, 5 mm, default mesh, 4.7 s): ``ls_tolerance`` 0.1 4.7 s,
+    ``ls_iterations`` 10 4.6 s, the dense Jacobian 68 s; softer ties do not either and move the markers (tie
+    ``solimp`` 0.95-0.99: 4.8 s, markers 0.058 mm off; 0.9-0.95: 4.6 s, 0.18 mm; time constant 8 steps: 5.5 s)."""
     if friction > 0:
         o.tolerance = min(o.tolerance, STICK_SOLVER_TOLERANCE)
         o.iterations = max(o.iterations, STICK_SOLVER_ITERATIONS)
