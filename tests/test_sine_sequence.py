@@ -82,8 +82,8 @@ def dense_cell():
 def test_press_sequence_identifies_the_crowded_pose_of_the_dense_pattern(dense_cell):
     """hexagon217_sep180 (1.8 mm separation) under z = 2.5·sin(2π/15·x): the valley markers, millimetres
     farther from the cameras than the crests, look ~0.7 x the median marker and must be detected
-    against their neighbours' size; markers lost for a frame are re-acquired. Measured: 217, 215, 213,
-    212, 208 of 217 at 1-5 mm, none wrong (before: 217, 214, 203, 152, 144, the detector rejecting 23
+    against their neighbours' size; markers lost for a frame are re-acquired. Measured: 217, 217, 217,
+    217, 215 of 217 at 1-5 mm, none wrong (217, 215, 213, 212, 208 before the first shell's fit) (before: 217, 214, 203, 152, 144, the detector rejecting 23
     valley markers of one view at 4 mm as small). Tolerance: >= 95 % in every frame."""
     c = dense_cell
     assert c["wrong_ids_sequence"] == 0
@@ -103,12 +103,14 @@ def dense_narrower_cell():
 
 def test_press_sequence_of_the_dense_pattern_under_the_narrower_sine_keeps_touching_pins(dense_narrower_cell):
     """hexagon217_sep180 under z = 2.5·sin(π/5·x): at 5 mm the crest pins of the right view touch in rows
-    and the far flank's, seen obliquely, touch side by side; each must give its own blob. Measured:
-    217, 217, 217, 216, 200 of 217 at 1-5 mm, none wrong (before: 217, 217, 217, 216, 165, the
-    suppression dropping a pin to the response merged between it and its brighter neighbour, and
-    each oblique pair found as one blob). What remains unmatched at 5 mm is identification (blobs
-    found but not carried from the previous frame). Tolerance: 0.88 at 5 mm."""
+    and the far flank's, seen obliquely, touch side by side; each must give its own blob, and each
+    must be followed from the previous frame where the map bends over two spacings (the far flank)
+    or the pins crowd along the crest only (the first shell's fit). Measured: 217, 217, 217, 217, 214
+    of 217 at 1-5 mm, none wrong (before: 217, 217, 217, 216, 165 with a pin dropped to the response
+    merged between it and its brighter neighbour and each oblique pair found as one blob; then 217,
+    217, 217, 216, 200 with ~16 blobs found but not followed, the fit over two shells refused).
+    Tolerance: >= 95 % in every frame."""
     c = dense_narrower_cell
     assert c["wrong_ids_sequence"] == 0
     assert c["matched_fraction_frames"][:3] == [1.0] * 3
-    assert c["matched_fraction"] >= 0.88
+    assert min(c["matched_fraction_frames"]) >= 0.95

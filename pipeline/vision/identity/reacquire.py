@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN,
-                                               F2F_MIN_FIT, F2F_NEIGHBOURS, F2F_RADIUS, F2F_RATIO, F2F_SPREAD,
-                                               _assign_mutual, _median_where, _nn_dist, _predict)
+from pipeline.vision.identity.temporal import (F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT, F2F_RATIO,
+                                               F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods, _nn_dist,
+                                               _predict)
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire"]
 
@@ -29,16 +29,8 @@ REACQUIRE_FRAMES = 3
 def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
     """The frame-to-frame fit's neighbour structure for markers at ``P`` (one earlier frame), and each
     one's current prediction from the neighbours that have a current blob ``corr`` (see :func:`_predict`)."""
-    m = len(P)
-    ptree = cKDTree(P)
-    s_prev = _nn_dist(ptree, P)
-    k = min(F2F_NEIGHBOURS, m - 1)
-    dn, nb = ptree.query(P, k=k + 1)
-    dn, nb = dn[:, 1:], nb[:, 1:]
-    near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
-    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
-    s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
-    pred, ok, jac = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+    nb, near, shell, s_prev = _neighbourhoods(P)
+    pred, ok, jac = _fit(P, pts, nb, near, shell, corr, s_prev, P)
     rough, rough_ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
     return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok, jac
 
@@ -52,7 +44,8 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     none since (nor now) is predicted from its last certified position moved by the affine map of its
     neighbours' motion from that frame to now (neighbours certified in both, the marker excluded),
     under the tests of :func:`frame_to_frame` unchanged: at least :data:`F2F_MIN_FIT` neighbours
-    spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL` local spacings; the nearest
+    spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL` local spacings (the first shell
+    alone where the whole neighbourhood is refused); the nearest
     blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design neighbour is not
     certified now, so that it may share the blob) of the prediction, :data:`F2F_RATIO` times and
     :data:`F2F_MARGIN` spacings nearer than the second-nearest blob (identified or not); and mutual: no

@@ -24,7 +24,9 @@ A marker's correspondence is accepted only when
 
 * at least :data:`F2F_MIN_FIT` of its neighbours have one, spread in two directions, and the affine
   map fits them all to within :data:`F2F_FIT_RESIDUAL` local spacings (one neighbour followed to the
-  wrong blob is a whole spacing off, so the fit refuses to predict rather than mislead);
+  wrong blob is a whole spacing off, so the fit refuses to predict rather than mislead); where the
+  whole neighbourhood is refused, its first shell (:data:`F2F_SHELL`) is fitted alone under the same
+  tests (a press bends the map over two spacings where one spacing is still affine);
 * the nearest blob lies within :data:`F2F_GATE` local spacings of the prediction (:data:`F2F_GATE_ALONE`
   next to a marker that was not followed), and the second-nearest blob is at least :data:`F2F_RATIO`
   times and :data:`F2F_MARGIN` local spacings farther;
@@ -82,9 +84,27 @@ F2F_FIT_RESIDUAL = 0.15
 #: The neighbours' previous positions must spread in two directions: the smaller principal standard
 #: deviation at least this fraction of the local spacing (collinear neighbours fix no affine map).
 F2F_SPREAD = 0.25
+#: Where the fit over all of them is refused, the marker is fitted from its first shell alone: its
+#: nearest this many neighbours (six on a hexagonal lattice) that are within reach. A press bends the
+#: map over two spacings where one spacing is still affine (a far flank seen obliquely, a crest's
+#: pins crowding faster than their second shell): there the second shell's residual fails the whole
+#: fit although the first shell's motion is one affine map. The tests are the fit's own (at least
+#: :data:`F2F_MIN_FIT` neighbours spread in two directions, each to :data:`F2F_FIT_RESIDUAL`), and a
+#: neighbour followed to the wrong blob is still a whole spacing off: in a ring of six about the
+#: marker, half of that stays in its residual, and with four neighbours a quarter (both over the limit).
+F2F_SHELL = 6
+#: The first shell is within reach wherever it lies within this many of the frame's median spacings,
+#: even beyond :data:`F2F_RADIUS` local spacings: where pins crowd in one direction only (along a
+#: crest), the local spacing is the crowded one and a fraction of the distance to the neighbours
+#: across the crest, which would leave the marker too few neighbours to be fitted at all. A hexagonal
+#: lattice's first shell lies at one spacing, its second at 1.7.
+F2F_SHELL_REACH = 1.5
 #: Rounds of prediction (a correspondence reaches a marker from neighbours one ring nearer the
-#: bootstrapped ones each round).
-F2F_ROUNDS = 12
+#: bootstrapped ones each round). A large step bootstraps only the slow part of the skin (the twin's
+#: 2 pi / 5 sine at 3 -> 4 mm: 79 of 216 markers) and the rest is reached ring by ring across a
+#: pattern 8 rings in radius, with crowded rings taking more than one round: 12 rounds stopped that
+#: growth still under way; a frame that converges stops at once.
+F2F_ROUNDS = 24
 
 
 def _nn_dist(tree: cKDTree, xy: np.ndarray) -> np.ndarray:
@@ -191,6 +211,40 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     return pred, ok, jac
 
 
+def _neighbourhoods(P: np.ndarray):
+    """Each previous marker's fit neighbourhood (markers at ``P`` (M, 2)): up to :data:`F2F_NEIGHBOURS`
+    nearest other markers within :data:`F2F_RADIUS` local spacings, its first shell
+    (:data:`F2F_SHELL`) also within :data:`F2F_SHELL_REACH` median spacings. Returns (nb (M, K)
+    neighbour indices, near (M, K) within reach, shell (M, K) the reachable first shell, s_prev (M,)
+    local spacing: the marker's nearest-neighbour distance or its neighbours' median, the smaller)."""
+    m = len(P)
+    ptree = cKDTree(P)
+    s_prev = _nn_dist(ptree, P)
+    k = min(F2F_NEIGHBOURS, m - 1)
+    dn, nb = ptree.query(P, k=k + 1)
+    dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
+    near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
+    first = np.arange(k) < F2F_SHELL
+    near |= first & np.isfinite(dn) & (dn <= F2F_SHELL_REACH * np.median(s_prev[np.isfinite(s_prev)]))
+    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
+    # a marker whose crowded neighbour merged with it into one blob has a wide spacing itself; its
+    # neighbours' spacing says how crowded the skin is there
+    s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
+    return nb, near, near & first, s_prev
+
+
+def _fit(P, pts, nb, near, shell, corr, s_prev, B):
+    """:func:`_predict` under the frame-to-frame tests, over the whole neighbourhood ``near`` and,
+    where that fit is refused, over the first ``shell`` alone (:data:`F2F_SHELL`)."""
+    pred, ok, jac = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
+    if not ok.all():
+        p1, ok1, j1 = _predict(P, pts, nb, shell, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
+        ok1 &= ~ok
+        pred[ok1], jac[ok1] = p1[ok1], j1[ok1]
+        ok = ok | ok1
+    return pred, ok, jac
+
+
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
     """Row-wise median of ``v`` over ``mask`` (``default`` for rows without any)."""
     w = np.where(mask, v, np.nan)
@@ -256,17 +310,8 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     P = np.ascontiguousarray(prev_xy, dtype=np.float64)
     pts = np.ascontiguousarray(pts, dtype=np.float64)
     tree = cKDTree(pts)
-    ptree = cKDTree(P)
     s_cur = _nn_dist(tree, pts)
-    s_prev = _nn_dist(ptree, P)
-    k = min(F2F_NEIGHBOURS, m - 1)
-    dn, nb = ptree.query(P, k=k + 1)
-    dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
-    near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
-    nb = np.ascontiguousarray(np.where(near, nb, 0), dtype=np.int64)
-    # a marker whose crowded neighbour merged with it into one blob has a wide spacing itself; its
-    # neighbours' spacing says how crowded the skin is there
-    s_prev = np.minimum(s_prev, _median_where(s_prev[nb], near, s_prev))
+    nb, near, shell, s_prev = _neighbourhoods(P)
 
     gate = np.full(m, F2F_GATE)
     if design_nbr is not None and len(design_nbr):
@@ -280,14 +325,13 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
     moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, P)
+        pred, ok, _ = _fit(P, pts, nb, near, shell, corr, s_prev, P)
         if moving is not None and moving.any():
             # where the increment itself is not affine over the neighbourhood (pins crowding into
             # the crests faster frame by frame), its change from the last frame's still is: the
             # neighbours' departures from their last velocity, fitted the same way, move the
             # marker on from where its own last velocity puts it
-            pv, okv, _ = _predict(P, pts, nb, near, np.where(moving, corr, -1), s_prev, F2F_MIN_FIT, F2F_SPREAD,
-                               F2F_FIT_RESIDUAL, E)
+            pv, okv, _ = _fit(P, pts, nb, near, shell, np.where(moving, corr, -1), s_prev, E)
             okv &= moving
             pred = np.where(okv[:, None], pv, pred)
             ok = ok | okv
