@@ -10,7 +10,8 @@ from pipeline.vision.detection.images import to_grey
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import spacing_suppress, suppress
 from pipeline.vision.detection.photometry import refine_and_measure
-from pipeline.vision.detection.rejection import screen, separate_debris, separate_pairs
+from pipeline.vision.detection.pairs import separate_pairs
+from pipeline.vision.detection.rejection import screen, separate_debris
 from pipeline.vision.detection.scale_space import find_candidates
 
 
