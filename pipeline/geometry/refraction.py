@@ -35,7 +35,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
-from pipeline.geometry.triangulation import camera_poses, closest_points, matched_rays
+from pipeline.geometry.triangulation import camera_poses, matched_rays
 from pipeline.types import MarkerCloud, MarkerMatches, StereoCalibration
 
 __all__ = ["RefractionError", "snell", "refract_stack_rays", "correct_exact", "correct_linear",
