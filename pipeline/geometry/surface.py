@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import math
 import threading
-import warnings
 
 import numba
 import numpy as np
@@ -37,6 +36,7 @@ __all__ = ["SurfaceError", "skin_surface", "height_map", "fit_surface", "ThinPla
 # Thin-plate-spline smoothing (added to the kernel diagonal as scipy's RBFInterpolator does; mm^2 of z): 1e-3 leaves exact
 # data interpolated to ~1 um yet keeps the normals stable under ~0.01 mm triangulation noise.
 SMOOTHING = 1e-3
+_GETRF, _GETRS = scipy.linalg.get_lapack_funcs(("getrf", "getrs"), (np.empty((2, 2)),))   # float64: dgetrf, dgetrs
 MIN_MARKERS = 6       # a thin-plate spline with a linear tail needs well over 3 non-collinear points
 GRID_STEP_MM = 0.25   # default height-map resolution: ~1/10 of the 2.54 mm marker separation
 
@@ -148,13 +148,14 @@ class ThinPlateSpline:
         _tps_system(xy, tail, float(smoothing), lhs, self._log_r2)
         rhs = np.concatenate([np.asarray(z, dtype=np.float64), np.zeros(3)])
         # symmetric system: its transpose is the Fortran-ordered array LAPACK wants, factorised in place
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
-            try:
-                lu = scipy.linalg.lu_factor(lhs.T, overwrite_a=True, check_finite=False)
-            except scipy.linalg.LinAlgWarning as exc:       # an exactly zero pivot
-                raise np.linalg.LinAlgError(str(exc)) from None
-        sol = scipy.linalg.lu_solve(lu, rhs, overwrite_b=True, check_finite=False)
+        # (LAPACK's getrf/getrs called directly: what scipy.linalg.lu_factor / lu_solve call, without
+        # their per-call checks and lookups)
+        lu, piv, info = _GETRF(lhs.T, overwrite_a=True)
+        if info > 0:
+            raise np.linalg.LinAlgError(f"Diagonal number {info} is exactly zero. Singular matrix.")
+        sol, info = _GETRS(lu, piv, rhs, overwrite_b=True)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"the spline system could not be solved (LAPACK info {info})")
         if not np.all(np.isfinite(sol)):
             raise np.linalg.LinAlgError("the spline system is singular (duplicated points?)")
         self._w, self._a = sol[:n], sol[n:]
