@@ -387,10 +387,11 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
     """The compiled defect path against its numpy definition on random inputs: the neighbour searches
     return the defined order (ascending distance, ties to the lower index) on tie-heavy inputs
     (lattices, duplicates), the design tables included however narrow; the affine fits agree to
-    rounding; verification/growth and the shift coder give the same codes."""
+    rounding; verification/growth and the shift coder give the same codes. The y-sweep of the blob
+    searches returns exactly what the brute-force scan does."""
     from pipeline.vision.dtrc.prediction import (SHIFT_FIT, SHIFT_MARGIN, _affine_fit, _shift_by_prediction,
                                                  _verify_and_grow)
-    from pipeline.vision.nearest import design_order, nearest, nearest_members
+    from pipeline.vision.nearest import design_order, nearest, nearest_members, nearest_swept, y_order
 
     rng = np.random.default_rng(7)
     names = ["hexagon127", "square121", "circular217_dome", "hexagon61_sep354"]
@@ -406,13 +407,19 @@ def test_compiled_prediction_kernels_match_their_numpy_definitions():
         ref = np.ascontiguousarray(ref)
         q = np.vstack([xy[rng.choice(len(xy), 10)], rng.uniform(ref.min(0) - 3, ref.max(0) + 3, (10, 2)),
                        ref[rng.choice(len(ref), 5)]])
+        by_y, ys = np.empty(len(ref), np.int64), np.empty(len(ref))
+        assert y_order(ref, by_y, ys)
         for k in {1, 2, min(8, len(ref)), min(9, len(ref))}:
             got_i, got_d2 = np.empty(k, np.int64), np.empty(k)
+            sw_i, sw_d2 = np.empty(k, np.int64), np.empty(k)
             for i in range(len(q)):
                 nearest(ref, q[i, 0], q[i, 1], k, got_i, got_d2)
                 want_i, want_d2 = _order_reference(ref, q[i, 0], q[i, 1], np.arange(len(ref)), k)
                 np.testing.assert_array_equal(got_i, want_i)
                 np.testing.assert_array_equal(got_d2, want_d2)
+                nearest_swept(ref, by_y, ys, q[i, 0], q[i, 1], k, sw_i, sw_d2)
+                np.testing.assert_array_equal(sw_i, want_i)
+                np.testing.assert_array_equal(sw_d2, want_d2)
         # design tables: prefixes of the full order, at any width (narrow ones cut inside tie groups)
         xy = np.ascontiguousarray(xy)
         full = np.array([_order_reference(xy, p[0], p[1], np.arange(len(xy)), len(xy))[0] for p in xy])

@@ -74,6 +74,42 @@ def test_refracted_rays_obey_snell_at_both_interfaces():
     assert np.allclose(p[:, 0], want)
 
 
+def test_fused_stack_midpoints_are_refract_stack_rays_then_closest_points():
+    """correct_exact's one-pass kernel computes what the two documented steps compute, ray by ray:
+    the same markers kept (rays that miss the stack, total internal reflection, parallel pairs drop
+    out alike) and the same points and gaps (identical with numpy's einsum order on x86-64; 1e-12
+    mm allowed for a numpy that sums the three products of a dot product in another order)."""
+    from pipeline.geometry.refraction import N_AIR, _indices, _stack_midpoints
+    from pipeline.geometry.triangulation import closest_points
+
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        design = load_design(("hexagon127", "circular217_dome", "square121")[trial % 3])
+        n = int(rng.integers(1, 300))
+        o1 = rng.normal(0, 5, (n, 3))
+        o1[:, 2] = rng.uniform(-30, -5, n)
+        o2 = o1 + rng.normal(0, 3, (n, 3))
+        d1, d2 = rng.normal(0, 0.3, (2, n, 3))
+        d1[:, 2], d2[:, 2] = rng.uniform(-0.1, 1, (2, n))     # some rays go away from the stack
+        d1[:3, 0] = 0.999                                       # grazing: total internal reflection
+        d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+        d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
+        d2[3:5] = d1[3:5]                                       # parallel pairs
+        n_gel = float(rng.uniform(1.3, 1.6)) if trial % 2 else None
+        p1, g1 = refract_stack_rays(o1, d1, design, n_gel=n_gel)
+        p2, g2 = refract_stack_rays(o2, d2, design, n_gel=n_gel)
+        with np.errstate(invalid="ignore"):
+            want, want_gap = closest_points(p1, g1, p2, g2)
+        n_a, n_g = _indices(design, n_gel, None)
+        got, got_gap = np.empty((n, 3)), np.empty(n)
+        _stack_midpoints(o1, d1, o2, d2, float(design.acrylic_air_z_mm), float(design.gel_acrylic_z_mm), N_AIR / n_a,
+                         n_a / n_g, got, got_gap)
+        ok = np.all(np.isfinite(want), axis=1)
+        np.testing.assert_array_equal(np.all(np.isfinite(got), axis=1), ok)
+        np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got_gap[ok], want_gap[ok], rtol=0, atol=1e-12)
+
+
 def test_points_outside_the_gel_are_rejected():
     design = load_design("hexagon127")
     calib = nominal_calibration(design)

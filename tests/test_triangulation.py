@@ -123,3 +123,27 @@ def test_newton_undistortion_is_opencvs_and_inverts_the_lens(dist):
     if dist is None:
         inside = (px[:, 0] >= 0) & (px[:, 0] <= 639) & (px[:, 1] >= 0) & (px[:, 1] <= 479)
         assert np.abs(new - ref)[inside].max() < 1e-10
+
+
+def test_compiled_midpoints_are_closest_points():
+    """The triangulation's compiled pass gives closest_points' midpoints: NaN for the same
+    (near-parallel) pairs, the same points elsewhere (identical with numpy's einsum order on x86-64;
+    1e-12 mm allowed for a numpy that sums a dot product's three products in another order)."""
+    from pipeline.geometry.triangulation import _midpoints, closest_points
+
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        n = int(rng.integers(1, 300))
+        o1 = rng.normal(0, 5, (n, 3))
+        o2 = o1 + rng.normal(0, 3, (n, 3))
+        d1, d2 = rng.normal(0, 1, (2, n, 3))
+        d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+        d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
+        d2[:3] = d1[:3]                                            # parallel pairs
+        with np.errstate(divide="ignore", invalid="ignore"):
+            want, _ = closest_points(o1, d1, o2, d2)
+        got = np.empty((n, 3))
+        _midpoints(o1, d1, o2, d2, got)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        ok = ~np.isnan(want)
+        np.testing.assert_allclose(got[ok], want[ok], rtol=0, atol=1e-12)

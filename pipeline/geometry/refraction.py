@@ -27,12 +27,15 @@ StereoTacTip paper, Sec. "Depth Correction Model", Eq. (3)-(8) and the error ter
 
 from __future__ import annotations
 
+import math
+
 import cv2
+import numba
 import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
-from pipeline.geometry.triangulation import camera_poses, closest_points, matched_rays
+from pipeline.geometry.triangulation import camera_poses, matched_rays
 from pipeline.types import MarkerCloud, MarkerMatches, StereoCalibration
 
 __all__ = ["RefractionError", "snell", "refract_stack_rays", "correct_exact", "correct_linear",
@@ -107,6 +110,63 @@ def refract_stack_rays(origins: np.ndarray, dirs: np.ndarray, design: SensorDesi
     return p2, d2
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _refract_row(o, d, z_air, z_gel, eta_a, eta_g):
+    """One ray of :func:`refract_stack_rays`, the same operations in the same order (each numpy
+    expression there rounds once per operation, as here; Snell's law is taken with the normal
+    (0, 0, -1), whose products ``-d . n`` and ``m n`` are exact). Returns the gel entry point and
+    direction, NaN where :func:`refract_stack_rays` gives NaN."""
+    nan = np.nan
+    s1 = (z_air - o[2]) / d[2]
+    p1x, p1y, p1z = o[0] + s1 * d[0], o[1] + s1 * d[1], o[2] + s1 * d[2]
+    # air -> acrylic
+    c = d[2]                                             # -d . (0, 0, -1)
+    k = 1.0 - eta_a * eta_a * (1.0 - c * c)
+    m = eta_a * c - math.sqrt(k) if k >= 0 else nan
+    t0, t1, t2 = eta_a * d[0] + m * 0.0, eta_a * d[1] + m * 0.0, eta_a * d[2] + m * -1.0
+    if k < 0:
+        t0 = t1 = t2 = nan
+    s2 = (z_gel - p1z) / t2
+    p2x, p2y, p2z = p1x + s2 * t0, p1y + s2 * t1, p1z + s2 * t2
+    # acrylic -> gel
+    c = t2
+    k = 1.0 - eta_g * eta_g * (1.0 - c * c)
+    m = eta_g * c - math.sqrt(k) if k >= 0 else nan
+    g0, g1, g2 = eta_g * t0 + m * 0.0, eta_g * t1 + m * 0.0, eta_g * t2 + m * -1.0
+    if k < 0:
+        g0 = g1 = g2 = nan
+    if not (d[2] > 0) or not (s1 >= 0):
+        p2x = p2y = p2z = g0 = g1 = g2 = nan
+    return p2x, p2y, p2z, g0, g1, g2
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _stack_midpoints(o1, d1, o2, d2, z_air, z_gel, eta_a, eta_g, xyz, gap):
+    """:func:`refract_stack_rays` of both rays of every marker and :func:`closest_points` of the
+    refracted pairs, in one pass with no (N, 3) temporaries: the same operations in the same order,
+    so the same numbers (bit for bit with numpy 2.4's einsum order on x86-64; tests/test_refraction.py
+    holds them to 1e-12 mm wherever numpy sums the dot products in another order)."""
+    for i in range(len(o1)):
+        ax, ay, az, ux, uy, uz = _refract_row(o1[i], d1[i], z_air, z_gel, eta_a, eta_g)
+        bx, by, bz, vx, vy, vz = _refract_row(o2[i], d2[i], z_air, z_gel, eta_a, eta_g)
+        wx, wy, wz = ax - bx, ay - by, az - bz
+        # the dot products summed as numpy's einsum sums three products (x + z first, then y)
+        b = (ux * vx + uz * vz) + uy * vy
+        dd = (ux * wx + uz * wz) + uy * wy
+        e = (vx * wx + vz * wz) + vy * wy
+        denom = 1.0 - b * b
+        s = (b * e - dd) / denom
+        t = (e - b * dd) / denom
+        q1x, q1y, q1z = ax + s * ux, ay + s * uy, az + s * uz
+        q2x, q2y, q2z = bx + t * vx, by + t * vy, bz + t * vz
+        if denom < 1e-12:
+            xyz[i, 0] = xyz[i, 1] = xyz[i, 2] = gap[i] = np.nan
+            continue
+        xyz[i, 0], xyz[i, 1], xyz[i, 2] = 0.5 * (q1x + q2x), 0.5 * (q1y + q2y), 0.5 * (q1z + q2z)
+        rx, ry, rz = q1x - q2x, q1y - q2y, q1z - q2z
+        gap[i] = math.sqrt(rx * rx + ry * ry + rz * rz)
+
+
 def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: SensorDesign, *,
                   n_gel: float | None = None, n_acrylic: float | None = None,
                   return_gap: bool = False, rays: tuple[np.ndarray, ...] | None = None
@@ -144,11 +204,13 @@ def correct_exact(matches: MarkerMatches, calib: StereoCalibration, design: Sens
     if len(matches) == 0:
         empty = MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
         return (empty, np.empty(0)) if return_gap else empty
-    o1, d1, o2, d2 = matched_rays(matches, calib) if rays is None else rays
-    p1, g1 = refract_stack_rays(o1, d1, design, n_gel=n_gel, n_acrylic=n_acrylic)
-    p2, g2 = refract_stack_rays(o2, d2, design, n_gel=n_gel, n_acrylic=n_acrylic)
-    with np.errstate(invalid="ignore"):
-        xyz, gap = closest_points(p1, g1, p2, g2)
+    o1, d1, o2, d2 = (np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3)
+                      for a in (matched_rays(matches, calib) if rays is None else rays))
+    n_a, n_g = _indices(design, n_gel, n_acrylic)
+    # refract_stack_rays of both rays and closest_points of the pair, fused (same numbers)
+    xyz, gap = np.empty((len(o1), 3)), np.empty(len(o1))
+    _stack_midpoints(o1, d1, o2, d2, float(design.acrylic_air_z_mm), float(design.gel_acrylic_z_mm), N_AIR / n_a,
+                     n_a / n_g, xyz, gap)
     ok = np.all(np.isfinite(xyz), axis=1)
     cloud = MarkerCloud(matches.ids[ok], xyz[ok])
     return (cloud, gap[ok]) if return_gap else cloud

@@ -19,7 +19,7 @@ StereoTacTip paper, Sec. "Skin Surface Reconstruction", Eq. (9)-(10).
 from __future__ import annotations
 
 import math
-import warnings
+import threading
 
 import numba
 import numpy as np
@@ -36,6 +36,7 @@ __all__ = ["SurfaceError", "skin_surface", "height_map", "fit_surface", "ThinPla
 # Thin-plate-spline smoothing (added to the kernel diagonal as scipy's RBFInterpolator does; mm^2 of z): 1e-3 leaves exact
 # data interpolated to ~1 um yet keeps the normals stable under ~0.01 mm triangulation noise.
 SMOOTHING = 1e-3
+_GETRF, _GETRS = scipy.linalg.get_lapack_funcs(("getrf", "getrs"), (np.empty((2, 2)),))   # float64: dgetrf, dgetrs
 MIN_MARKERS = 6       # a thin-plate spline with a linear tail needs well over 3 non-collinear points
 GRID_STEP_MM = 0.25   # default height-map resolution: ~1/10 of the 2.54 mm marker separation
 
@@ -85,6 +86,32 @@ def _tps_gradient_at_centres(xy, log_r2, w):
     return out
 
 
+class _Scratch:
+    """Per-thread buffers for the spline system and its pairwise logarithms, reused frame after frame.
+
+    The system of a 217-marker sensor is ~390 kB and its logarithms as much again: fresh arrays of
+    that size come from the kernel page by page on every frame, and where page faults are slow (2
+    shared cores) that cost the skin stage of circular217_dome 1.66 ms against 0.99 ms with the
+    buffers kept (one sensor per process, a frame after any other job). Kept per marker count (a
+    stream sees a few), at most :data:`_ENTRIES` of them."""
+
+    _ENTRIES = 8
+    _local = threading.local()
+
+    @classmethod
+    def get(cls, name: str, shape: tuple[int, int]) -> np.ndarray:
+        bufs = getattr(cls._local, "bufs", None)
+        if bufs is None:
+            bufs = cls._local.bufs = {}
+        key = (name, shape)
+        buf = bufs.get(key)
+        if buf is None:
+            if len(bufs) >= 2 * cls._ENTRIES:
+                bufs.clear()
+            buf = bufs[key] = np.empty(shape)
+        return buf
+
+
 class ThinPlateSpline:
     """Smoothing thin-plate spline z = f(x, y) with a linear tail, and its analytic gradient.
 
@@ -99,7 +126,10 @@ class ThinPlateSpline:
 
     _CHUNK = 4096  # query points evaluated at a time (bounds the (chunk, N) blocks)
 
-    def __init__(self, xy: np.ndarray, z: np.ndarray, smoothing: float = SMOOTHING) -> None:
+    def __init__(self, xy: np.ndarray, z: np.ndarray, smoothing: float = SMOOTHING, *, scratch: bool = False) -> None:
+        """``scratch``: build the system in this thread's reused buffers (:class:`_Scratch`); the
+        spline is then valid only until the next ``scratch`` fit on the same thread (for a caller
+        that evaluates it at once and drops it, as :func:`skin_surface` does)."""
         xy = np.ascontiguousarray(xy, dtype=np.float64)
         n = len(xy)
         lo, hi = xy.min(axis=0), xy.max(axis=0)
@@ -109,18 +139,23 @@ class ThinPlateSpline:
         tail = self._tail(xy)
         if np.linalg.matrix_rank(tail) < 3:
             raise np.linalg.LinAlgError("the points are collinear: the linear tail is not determined")
-        lhs = np.empty((n + 3, n + 3))
-        self._log_r2 = np.empty((n, n))
+        if scratch:
+            lhs = _Scratch.get("lhs", (n + 3, n + 3))
+            self._log_r2 = _Scratch.get("log_r2", (n, n))
+        else:
+            lhs = np.empty((n + 3, n + 3))
+            self._log_r2 = np.empty((n, n))
         _tps_system(xy, tail, float(smoothing), lhs, self._log_r2)
         rhs = np.concatenate([np.asarray(z, dtype=np.float64), np.zeros(3)])
         # symmetric system: its transpose is the Fortran-ordered array LAPACK wants, factorised in place
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
-            try:
-                lu = scipy.linalg.lu_factor(lhs.T, overwrite_a=True, check_finite=False)
-            except scipy.linalg.LinAlgWarning as exc:       # an exactly zero pivot
-                raise np.linalg.LinAlgError(str(exc)) from None
-        sol = scipy.linalg.lu_solve(lu, rhs, overwrite_b=True, check_finite=False)
+        # (LAPACK's getrf/getrs called directly: what scipy.linalg.lu_factor / lu_solve call, without
+        # their per-call checks and lookups)
+        lu, piv, info = _GETRF(lhs.T, overwrite_a=True)
+        if info > 0:
+            raise np.linalg.LinAlgError(f"Diagonal number {info} is exactly zero. Singular matrix.")
+        sol, info = _GETRS(lu, piv, rhs, overwrite_b=True)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"the spline system could not be solved (LAPACK info {info})")
         if not np.all(np.isfinite(sol)):
             raise np.linalg.LinAlgError("the spline system is singular (duplicated points?)")
         self._w, self._a = sol[:n], sol[n:]
@@ -160,15 +195,16 @@ class ThinPlateSpline:
         return out + self._a[1:] / self._scale
 
 
-def fit_surface(xyz_mm: np.ndarray, *, smoothing: float = SMOOTHING) -> ThinPlateSpline:
-    """Thin-plate spline z = f(x, y) through points (N, 3) mm; raises SurfaceError if degenerate."""
+def fit_surface(xyz_mm: np.ndarray, *, smoothing: float = SMOOTHING, scratch: bool = False) -> ThinPlateSpline:
+    """Thin-plate spline z = f(x, y) through points (N, 3) mm; raises SurfaceError if degenerate.
+    ``scratch``: see :class:`ThinPlateSpline` (the spline lives only until the next such fit)."""
     xyz = np.asarray(xyz_mm, dtype=np.float64).reshape(-1, 3)
     if len(xyz) < MIN_MARKERS:
         raise SurfaceError(f"surface fit: need at least {MIN_MARKERS} markers, got {len(xyz)}")
     if not np.all(np.isfinite(xyz)):
         raise SurfaceError(f"surface fit: {int((~np.isfinite(xyz)).any(axis=1).sum())} of {len(xyz)} points are not finite")
     try:
-        return ThinPlateSpline(xyz[:, :2], xyz[:, 2], smoothing)
+        return ThinPlateSpline(xyz[:, :2], xyz[:, 2], smoothing, scratch=scratch)
     except np.linalg.LinAlgError as exc:
         raise SurfaceError(f"surface fit: {len(xyz)} markers are degenerate (collinear or duplicated): {exc}") from None
 
@@ -201,7 +237,7 @@ def skin_surface(cloud: MarkerCloud, design: SensorDesign, *, smoothing: float =
     Assumes the pins stay normal to the skin; the twin's physics does not enforce this, so the
     benchmarks measure what the assumption costs. Needs at least :data:`MIN_MARKERS` markers.
     """
-    f = fit_surface(cloud.xyz_mm, smoothing=smoothing)
+    f = fit_surface(cloud.xyz_mm, smoothing=smoothing, scratch=True)   # used here only: reused buffers
     N = _normals(f)
     return SkinSurface(cloud.ids, cloud.xyz_mm + design.marker_depth_mm * N, N)
 

@@ -27,7 +27,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["DESIGN_ORDER_WIDTH", "design_order", "nearest", "nearest_members"]
+__all__ = ["DESIGN_ORDER_WIDTH", "design_order", "nearest", "nearest_members", "y_order", "nearest_swept"]
 
 #: Design points listed per design point in :func:`design_order`: about four hexagonal shells, enough
 #: for the 8 nearest coded points wherever the coded set is not sparse; a query that runs past its row
@@ -92,6 +92,69 @@ def nearest(pts, x, y, k, out_idx, out_d2):
         dx = pts[i, 0] - x
         dy = pts[i, 1] - y
         n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
+
+
+@numba.njit(inline="always")
+def _keep_lex(out_idx, out_d2, n, k, i, d):
+    """:func:`_keep` for points offered in any order: (squared distance, index) compared as a pair,
+    so the kept prefix is the one :func:`_keep` leaves after offers in index order."""
+    if n == k:
+        if not (d < out_d2[k - 1] or (d == out_d2[k - 1] and i < out_idx[k - 1])):
+            return n
+        j = k - 1
+    else:
+        j = n
+        n += 1
+    while j > 0 and (out_d2[j - 1] > d or (out_d2[j - 1] == d and out_idx[j - 1] > i)):
+        out_idx[j] = out_idx[j - 1]
+        out_d2[j] = out_d2[j - 1]
+        j -= 1
+    out_idx[j] = i
+    out_d2[j] = d
+    return n
+
+
+@numba.njit(cache=True)
+def y_order(pts, by_y, ys):
+    """Fill ``by_y`` with the point indices in ascending ``y`` and ``ys`` with those ``y`` (for
+    :func:`nearest_swept`); returns False, leaving the sweep unusable, when a coordinate is not finite."""
+    for i in range(len(pts)):
+        if not (np.isfinite(pts[i, 0]) and np.isfinite(pts[i, 1])):
+            return False
+    by_y[:] = np.argsort(pts[:, 1], kind="mergesort")
+    for j in range(len(pts)):
+        ys[j] = pts[by_y[j], 1]
+    return True
+
+
+@numba.njit(cache=True)
+def nearest_swept(pts, by_y, ys, x, y, k, out_idx, out_d2):
+    """:func:`nearest`, the same points in the same order, visiting only the points whose ``y`` is
+    within the k-th distance: out from ``y`` through ``ys`` (:func:`y_order`) in both directions,
+    each direction stopping at the first point with ``dy * dy`` beyond the k-th kept squared distance
+    (every later point is at least as far in ``y``, and ``dx * dx + dy * dy >= dy * dy`` in floating
+    point too, rounding being monotonic). A blob search in a frame of a few hundred markers then
+    looks at a handful of them instead of all."""
+    if not (np.isfinite(x) and np.isfinite(y)):
+        nearest(pts, x, y, k, out_idx, out_d2)
+        return
+    m = len(ys)
+    hi = np.searchsorted(ys, y)
+    n = 0
+    for j in range(hi, m):
+        i = by_y[j]
+        dy = pts[i, 1] - y
+        if n == k and dy * dy > out_d2[k - 1]:
+            break
+        dx = pts[i, 0] - x
+        n = _keep_lex(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
+    for j in range(hi - 1, -1, -1):
+        i = by_y[j]
+        dy = pts[i, 1] - y
+        if n == k and dy * dy > out_d2[k - 1]:
+            break
+        dx = pts[i, 0] - x
+        n = _keep_lex(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
 
 
 @numba.njit(cache=True)

@@ -15,7 +15,7 @@ from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, 
 from pipeline.vision.identity.fans import _embedded
 from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
 from pipeline.vision.identity.neighbours import _adj
-from pipeline.vision.nearest import nearest
+from pipeline.vision.nearest import nearest, nearest_swept, y_order
 
 
 @numba.njit(cache=True)
@@ -44,6 +44,11 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
     ring = np.empty(fan.shape[1], np.int64)
     near = np.empty(FAN_QUERY, np.int64)
     near_d2 = np.empty(FAN_QUERY)
+    # the blob searches sweep the blobs in y order, sorted at the first search (sweep[0]: 0 not yet,
+    # 1 sorted, 2 not sortable: brute force)
+    by_y = np.empty(len(pts), np.int64)
+    ys = np.empty(len(pts))
+    sweep = np.zeros(1, np.int64)
     n_bad = 0
     for b in order:
         if stop_after > 0 and n_bad >= stop_after:
@@ -63,7 +68,7 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
             st = _NEED_SEARCH
         else:
             st = _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots,
-                             blobs, acc, two, two_d2, K)
+                             blobs, acc, two, two_d2, K, by_y, ys, sweep)
         status[b] = st
         if st == R_INCONSISTENT:
             n_bad += 1
@@ -71,8 +76,19 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
 
 
 @numba.njit(cache=True)
+def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
+    """The two blobs nearest to (x, y), as :func:`nearest` finds them (:func:`nearest_swept`)."""
+    if sweep[0] == 0:
+        sweep[0] = 1 if y_order(pts, by_y, ys) else 2
+    if sweep[0] == 1:
+        nearest_swept(pts, by_y, ys, x, y, 2, two, two_d2)
+    else:
+        nearest(pts, x, y, 2, two, two_d2)
+
+
+@numba.njit(cache=True)
 def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc, two,
-                two_d2, K):
+                two_d2, K, by_y, ys, sweep):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
 
     The immediate design neighbours ``nbr[s]`` are the first entries of ``nbr2[s]`` (both sorted
@@ -118,7 +134,7 @@ def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch
         if q == 0 and len(pts) >= 2:
             if not search:
                 return _NEED_SEARCH
-            nearest(pts, pu, pv, 2, two, two_d2)
+            _search(pts, pu, pv, two, two_d2, by_y, ys, sweep)
             d1 = math.sqrt(two_d2[0]) / scale
             d2 = math.sqrt(two_d2[1]) / scale
             if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
@@ -126,7 +142,7 @@ def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch
             if n_imm <= n_design - 2:
                 # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
                 # to b than CLOSE_BLOB separations leaves open which of the two is the marker
-                nearest(pts, pts[b, 0], pts[b, 1], 2, two, two_d2)
+                _search(pts, pts[b, 0], pts[b, 1], two, two_d2, by_y, ys, sweep)
                 if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
                     return R_AMBIGUOUS
     return 0
