@@ -154,6 +154,23 @@ def _child(tmp_path, extends, body="", name="child"):
     return p
 
 
+def test_twin_friction_is_a_checked_design_key(tmp_path):
+    """``[twin] friction`` (the twin's skin/indenter Coulomb coefficient) defaults to 0, can be set by an override
+    even where the design has no [twin] section, survives writing the design out, and is refused outside [0, 10]."""
+    d = load_design("hexagon127")
+    assert d.twin_params()["friction"] == 0.0
+    rough = d.with_overrides({"twin.friction": 0.8})
+    assert rough.twin_params()["friction"] == 0.8
+    path = tmp_path / "rough.toml"
+    path.write_text(to_toml(rough))
+    assert load_design(str(path)).twin_params()["friction"] == 0.8
+    for bad in (-0.5, 11.0):
+        with pytest.raises(DesignError, match=r"twin\.friction"):
+            d.with_overrides({"twin.friction": bad})
+    with pytest.raises(DesignError, match="unknown key|no section"):
+        d.with_overrides({"twin.frictoin": 0.5})
+
+
 def test_builtin_designs_equal_their_written_out_form(tmp_path):
     """Every built-in design that extends a base loads to the same design as its merged document written
     out as one standalone file (to_toml): inheritance changes where a value is written, never the value."""

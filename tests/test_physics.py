@@ -292,6 +292,20 @@ def test_direct_solve_refuses_friction():
     assert sim.steps_taken == 0
 
 
+def test_friction_comes_from_the_design_unless_given():
+    """The coefficient a press uses is the design's ``[twin] friction`` (the built-in designs: 0), overridden by
+    the caller's; a frictional model carries the x-y stick ties of every free outer vertex, a frictionless one none."""
+    d = load_design("hexagon127")
+    ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=50)
+    plain = SkinSim(d, ind, mesh=COARSE)
+    assert plain.friction == 0.0 and plain.model.neq == 0
+    rough = SkinSim(d.with_overrides({"twin.friction": 0.7}), ind, mesh=COARSE)
+    assert rough.friction == 0.7 and rough.model.neq == 2 * int(np.count_nonzero(rough._is_free_top))
+    assert SkinSim(d.with_overrides({"twin.friction": 0.7}), ind, mesh=COARSE, friction=0.0).friction == 0.0
+    with pytest.raises(PhysicsError, match="coefficient"):
+        SkinSim(d, ind, mesh=COARSE, friction=-0.1)
+
+
 def test_model_cache_gives_the_same_physics():
     """A second sim of the same design/indenter/mesh copies the compiled model: identical results, and
     a sim with different parameters is not served from the cache."""

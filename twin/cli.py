@@ -38,9 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="skin mesh: 'default' (1.5 mm over the centre, vertex contact unless --face-contact) or 'axis' "
                         "(0.5 mm cells within 3 mm of the sensor axis plus face contact: what the Gaussian experiment "
                         "presses on; keeps Gaussians and spheres on the axis valid, ~10x slower)")
-    p.add_argument("--friction", type=float, default=0.0, metavar="MU",
-                   help="Coulomb friction skin/indenter (default 0: frictionless). Silicone-type elastomers on hard "
-                        "smooth polymers are usually quoted at mu ~ 0.5-1.5 (not measured for Agilus30 on PLA); "
+    p.add_argument("--friction", type=float, default=None, metavar="MU",
+                   help="Coulomb friction skin/indenter (default: the design's [twin] friction, 1.0 for the built-in "
+                        "designs; 0: frictionless). Silicone-type elastomers on hard smooth polymers are usually quoted "
+                        "at mu ~ 0.5-1.5 (not measured for Agilus30 on PLA); "
                         "touching vertices stick to the indenter and slide where the tangential force exceeds mu times the "
                         "normal one (README 'Known limits'); presses follow the path (slower)")
     p.add_argument("--allow-invalid", "--allow-unsettled", action="store_true",

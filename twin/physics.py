@@ -41,7 +41,7 @@ from twin.readout import SkinReadout
 
 # re-exported from twin.mesh and twin.solve: what a caller of SkinSim passes it, gets back or catches
 __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm", "DIRECT_ACCEPT_MM",
-           "AXIS_CONTACT_MESH"]
+           "AXIS_CONTACT_MESH", "resolve_friction"]
 
 FRICTION_SETTLE_MAX_STEPS = 1200  # with friction a dragged contact relaxes by its anchors sliding at most
                                   # stick.STICK_MAX_SLIDE_MM a step: the letter 'o' after its rapid 2 mm + 2 mm
@@ -93,6 +93,14 @@ def max_depth_mm(design: SensorDesign) -> float:
     return design.optics.gel_thickness_mm - design.pins.height_mm - DEPTH_MARGIN_MM
 
 
+def resolve_friction(design: SensorDesign, friction: float | None) -> float:
+    """The Coulomb coefficient a press uses: ``friction`` if given, else the design's ``[twin] friction``."""
+    mu = float(design.twin_params()["friction"] if friction is None else friction)
+    if not math.isfinite(mu) or not 0.0 <= mu <= 10.0:
+        raise PhysicsError(f"friction {friction!r}: must be a coefficient in [0, 10]")
+    return mu
+
+
 class SkinSim(SkinReadout):
     """The skin module in MuJoCo with one indenter on a mocap "robot".
 
@@ -102,7 +110,8 @@ class SkinSim(SkinReadout):
     indenter : Indenter from :func:`twin.indenters.make_indenter`
     mesh : MeshSpec resolution
     timestep_s : physics step (s); the equilibrium does not depend on it
-    friction : Coulomb friction skin/indenter; 0 (default) = frictionless contact (condim 1)
+    friction : Coulomb friction skin/indenter; None (default): the design's ``[twin] friction``
+        (:data:`pipeline.design.TWIN_KEYS`: 0, frictionless contact, condim 1)
 
     Notes
     -----
@@ -111,7 +120,7 @@ class SkinSim(SkinReadout):
     """
 
     def __init__(self, design: SensorDesign, indenter: Indenter, *, mesh: MeshSpec = MeshSpec(),
-                 timestep_s: float = 0.01, friction: float = 0.0) -> None:
+                 timestep_s: float = 0.01, friction: float | None = None) -> None:
         import mujoco
 
         self._mj = mujoco
@@ -119,11 +128,10 @@ class SkinSim(SkinReadout):
         self.timestep_s = float(timestep_s)
         t0 = time.perf_counter()
         self.mesh = m = build_mesh(design, mesh)
-        self.friction = float(friction)
-        if not math.isfinite(self.friction) or not 0.0 <= self.friction <= 10.0:
-            raise PhysicsError(f"friction {friction!r}: must be a coefficient in [0, 10]")
+        self.friction = resolve_friction(design, friction)
         # the compiled model (twin.model), and the index arrays beside it under the names of twin.model._DERIVED
-        self.model, derived, self.model_from_cache = _model.load(design, indenter, m, mesh, self.timestep_s, friction)
+        self.model, derived, self.model_from_cache = _model.load(design, indenter, m, mesh, self.timestep_s,
+                                                                 self.friction)
         self.data = mujoco.MjData(self.model)
         for a, v in derived.items():
             setattr(self, a, v)

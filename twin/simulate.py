@@ -41,7 +41,7 @@ def _check_depth(design: SensorDesign, depth_mm: float) -> None:
 
 
 def _run(design: SensorDesign, indenter: Indenter, motion: robot.Motion, mesh: MeshSpec, progress: bool,
-         friction: float = 0.0) -> SimRun:
+         friction: float | None = None) -> SimRun:
     from tqdm import tqdm
 
     t0 = time.perf_counter()
@@ -52,7 +52,7 @@ def _run(design: SensorDesign, indenter: Indenter, motion: robot.Motion, mesh: M
         res = robot.execute(sim, motion, progress=bar)
     out = SimRun(t for _, _, t in res)
     out.meta = {
-        "motion": motion.name, "robot_speed_mm_s": robot.ROBOT_SPEED_MM_S, "friction": float(friction),
+        "motion": motion.name, "robot_speed_mm_s": robot.ROBOT_SPEED_MM_S, "friction": sim.friction,
         "timestamps_s": [t for t, _, _ in res],
         "settle": [{"steps": s.steps, "converged": s.converged, "last_motion_mm": s.last_motion_mm,
                     "seconds": s.seconds, "direct": s.direct, "damped_steps": s.damped_steps} for _, s, _ in res],
@@ -73,7 +73,7 @@ def _run(design: SensorDesign, indenter: Indenter, motion: robot.Motion, mesh: M
 
 def press_truth(design: SensorDesign, indenter: Indenter, depth_mm: float, *, n_frames: int = 1,
                 yaw_deg: float = 0.0, mesh: MeshSpec = MeshSpec(), progress: bool = False,
-                friction: float = 0.0) -> SimRun:
+                friction: float | None = None) -> SimRun:
     """Physics only: press ``depth_mm`` (skin contact at 0), ``n_frames`` truths at depth·k/n."""
     _check_depth(design, depth_mm)
     return _run(design, indenter, robot.press_motion(depth_mm, n_frames=n_frames, yaw_deg=yaw_deg), mesh, progress,
@@ -81,7 +81,7 @@ def press_truth(design: SensorDesign, indenter: Indenter, depth_mm: float, *, n_
 
 
 def motion_truth(design: SensorDesign, indenter: Indenter, motion: str, *, yaw_deg: float = 0.0,
-                 mesh: MeshSpec = MeshSpec(), progress: bool = False, friction: float = 0.0) -> SimRun:
+                 mesh: MeshSpec = MeshSpec(), progress: bool = False, friction: float | None = None) -> SimRun:
     """Physics only: one of :data:`twin.robot.MOTIONS` (``press`` = 5 mm, 5 frames)."""
     m = robot.press_motion(5.0, n_frames=5, yaw_deg=yaw_deg) if motion == "press" else \
         robot.tracking_motion(motion, yaw_deg=yaw_deg)
@@ -112,7 +112,7 @@ def _with_frames(design, truths: SimRun, rng) -> SimRun:
 
 def press(design: SensorDesign, indenter: Indenter, depth_mm: float, *, n_frames: int = 1, yaw_deg: float = 0.0,
           rng: np.random.Generator, mesh: MeshSpec = MeshSpec(), progress: bool = False,
-          friction: float = 0.0) -> SimRun:
+          friction: float | None = None) -> SimRun:
     """Press and render: ``[(StereoFrame, Truth), ...]`` for frames at depth·k/n_frames, k = 1..n."""
     return _with_frames(design, press_truth(design, indenter, depth_mm, n_frames=n_frames, yaw_deg=yaw_deg,
                                             mesh=mesh, progress=progress, friction=friction), rng)
@@ -120,7 +120,7 @@ def press(design: SensorDesign, indenter: Indenter, depth_mm: float, *, n_frames
 
 def run_motion(design: SensorDesign, indenter: Indenter, motion: str, *, rng: np.random.Generator,
                yaw_deg: float = 0.0, mesh: MeshSpec = MeshSpec(), progress: bool = False,
-               friction: float = 0.0) -> SimRun:
+               friction: float | None = None) -> SimRun:
     """A scripted motion (:data:`twin.robot.MOTIONS`), rendered: ``[(StereoFrame, Truth), ...]``."""
     return _with_frames(design, motion_truth(design, indenter, motion, yaw_deg=yaw_deg, mesh=mesh,
                                              progress=progress, friction=friction), rng)

@@ -163,6 +163,20 @@ def validity_columns(truth) -> dict:
             "physics_reasons": list(v.get("reasons", ["no physics validity recorded"]))}
 
 
+def friction_knob(ctx, out) -> float | None:
+    """The ``friction`` knob of a press grid (``--param friction=MU``): the Coulomb coefficient every press uses,
+    None (default) for each design's own ``[twin] friction``; the report's notes say which."""
+    mu = ctx.param("friction", None)
+    if mu is None:
+        out.notes.append("Contact friction: each design's [twin] friction (the built-in designs: 0, frictionless).")
+        return None
+    mu = float(mu)
+    if not 0.0 <= mu <= 10.0:
+        raise ValueError(f"--param friction={mu!r}: must be a Coulomb coefficient in [0, 10]")
+    out.notes.append(f"Contact friction: μ = {mu:g} in every press (--param friction).")
+    return mu
+
+
 def run_press_cells(ctx, out, fn, jobs: list, *, desc: str, params) -> list:
     """Run a grid experiment's presses through the executor; returns the results of the cells that ran.
 

@@ -15,8 +15,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments._common import (gaussian_curvature_profile, make_indenter, radial_rms, rms, run_press_cells,
-                                            surface_grid, calibration_note, reconstruct, validity_columns)
+from benchmarks.experiments._common import (friction_knob, gaussian_curvature_profile, make_indenter, radial_rms, rms,
+                                            run_press_cells, surface_grid, calibration_note, reconstruct,
+                                            validity_columns)
 from benchmarks.registry import Context, Finding, Result, register, stream_rng
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -104,7 +105,8 @@ def _grid(ctx: Context) -> _Grid:
 
 def _press_grid(ctx: Context, out: Result, grid: _Grid) -> list:
     """Press, reconstruct and score every cell (:func:`press_cell`) through the executor."""
-    jobs = [(design, s2, yaw, ctx.seed, f"gaussian/{design.name}/{s2:.4f}/{yaw:g}", grid.setups[design.name])
+    mu = friction_knob(ctx, out)
+    jobs = [(design, s2, yaw, ctx.seed, f"gaussian/{design.name}/{s2:.4f}/{yaw:g}", grid.setups[design.name], mu)
             for design in grid.designs for s2 in grid.sigma2s for yaw in grid.yaws]
     return run_press_cells(ctx, out, press_cell, jobs, desc="gaussian", params=lambda j: (
         {"design": j[0].name, "sigma2_mm2": j[1], "yaw_deg": j[2]}, f"{j[0].name} σ²={j[1]:.3g} yaw {j[2]:g}"))
@@ -244,13 +246,15 @@ def _e(g: dict, which: str) -> np.ndarray:
     return g["z_rec"] - g["z_skin"]
 
 
-def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None) -> tuple:
+def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None,
+               friction: float | None = None) -> tuple:
     """One cell of the grid: press the σ² Gaussian rotated by ``yaw`` into ``design``, reconstruct the
     frame with the unchanged pipeline and score it. Returns (cell row, radial bin centres, radial RMS
     profile vs CAD, the surface grid, distance from the tip), everything the summary and figure need.
     The frame's noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
     ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
-    given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``."""
+    given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``. ``friction``: the
+    Coulomb coefficient of the press, None for the design's own."""
     from benchmarks.estimated import sensor_setup
     from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press
@@ -260,7 +264,8 @@ def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None
     built, design, calib = setup.twin_design, setup.design, setup.calib
     radius = design.pattern_radius_mm() - design.pattern.separation_mm / 2
     ind = make_indenter("gaussian", h_mm=H_MM, sigma2_mm2=s2)
-    frame, truth = press(built, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng, mesh=AXIS_CONTACT_MESH)[-1]
+    frame, truth = press(built, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng, mesh=AXIS_CONTACT_MESH,
+                         friction=friction)[-1]
     fr = reconstruct(design, calib, [frame], **setup.reconstructor_kw())[0]
     g = surface_grid(fr.skin, truth, radius)
     tip = np.nanargmin(np.where(np.isfinite(g["z_ind"]), g["z_ind"], np.inf))

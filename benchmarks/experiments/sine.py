@@ -14,8 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments._common import (identity_correct, make_indenter, reconstruct, rms, run_press_cells,
-                                            surface_grid, calibration_note, validity_columns)
+from benchmarks.experiments._common import (friction_knob, identity_correct, make_indenter, reconstruct, rms,
+                                            run_press_cells, surface_grid, calibration_note, validity_columns)
 from benchmarks.registry import Context, Finding, Result, register, stream_rng
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -119,7 +119,8 @@ def _grid(ctx: Context) -> _Grid:
 
 def _press_grid(ctx: Context, out: Result, grid: _Grid) -> list:
     """Press, reconstruct and score every cell (:func:`press_cell`) through the executor; [(row, surface grid)]."""
-    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", grid.setups[design.name], grid.n_press)
+    mu = friction_knob(ctx, out)
+    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", grid.setups[design.name], grid.n_press, mu)
             for design in grid.designs for k in grid.omega_idx for yaw in grid.yaws]
     return run_press_cells(ctx, out, press_cell, jobs, desc="sine", params=lambda j: (
         {"design": j[0].name, "omega_index": j[1], "yaw_deg": j[2]},
@@ -273,13 +274,15 @@ def _plot(ctx: Context, cells: list, valid_rows: list[dict], grid: _Grid):
         return save_figure(fig, ctx.figure_path("sine"))
 
 
-def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n_frames: int = PRESS_FRAMES) -> tuple:
+def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n_frames: int = PRESS_FRAMES,
+               friction: float | None = None) -> tuple:
     """One cell of the grid: press the sine ω = OMEGAS[k] rotated by ``yaw`` into ``design`` from rest in
     ``n_frames`` frames, reconstruct them in order with the unchanged pipeline (one Reconstructor) and
     score the last; returns (cell row, surface grid). Every frame's ids are checked against the twin's
     markers. The frames' noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
     ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
-    given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``."""
+    given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``. ``friction``: the
+    Coulomb coefficient of the press, None for the design's own."""
     from benchmarks.estimated import sensor_setup
     from twin.physics import MeshSpec
     from twin.simulate import press
@@ -292,7 +295,8 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
     ind = make_indenter("sine", amplitude_mm=AMPLITUDE_MM, omega_rad_per_mm=w)
     # face contact: the outer faces collide with spheres on the sine's crests and flanks (twin.contact), which the
     # 1.5 mm faces between vertex contacts otherwise cut by 0.08 mm (π/15) to 4.5 mm (2π/5)
-    run = press(built, ind, DEPTH_MM, n_frames=n_frames, yaw_deg=yaw, rng=rng, mesh=MeshSpec(face_contact=True))
+    run = press(built, ind, DEPTH_MM, n_frames=n_frames, yaw_deg=yaw, rng=rng, mesh=MeshSpec(face_contact=True),
+                friction=friction)
     results = reconstruct(design, calib, [f for f, _ in run], **setup.reconstructor_kw())
     sep = design.pattern.separation_mm
     matched = [r.n_matched / design.marker_count for r in results]

@@ -123,9 +123,11 @@ class MonoCamera(_Lens):
     roll_deg: float = 0.0
 
 
-#: Keys of the optional ``[twin]`` section (rendering appearance and tap physics of a monocular design),
-#: with their defaults; every value is a finite number. ``twin.tactip`` gives them their meaning.
+#: Keys of the optional ``[twin]`` section (the simulated skin's contact friction; rendering appearance and tap
+#: physics of a monocular design), with their defaults; every value is a finite number. ``twin.physics`` and
+#: ``twin.tactip`` give them their meaning.
 TWIN_KEYS: dict[str, float] = {
+    "friction": 0.0,               # Coulomb coefficient skin/indenter the twin presses with (0: frictionless)
     "bending_ratio": 0.3,          # membrane bending / stretching stiffness (mm^2)
     "depth_offset_mm": 0.0,        # tap depth of the labels minus the depth into the undeformed dome
     "tilt_frame_deg": 0.0,         # angle of the robot's tilt axes about the sensor axis

@@ -146,6 +146,9 @@ class SensorDesign:
         raw = to_dict(self)
         for key, value in overrides.items():
             parts = key.split(".")
+            if len(parts) == 2 and parts[0] == "twin" and parts[1] in TWIN_KEYS:
+                # the [twin] section is optional and holds only what a design changes from its defaults
+                raw.setdefault("twin", {}).setdefault(parts[1], TWIN_KEYS[parts[1]])
             node = raw
             for p in parts[:-1]:
                 if p not in node or not isinstance(node[p], dict):

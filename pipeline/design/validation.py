@@ -136,6 +136,7 @@ MAX_LINKS = 64
 MAX_LENGTH_MM = 1000.0        # no part of a tactile skin module is a metre long
 POISSON_RANGE = (0.0, 0.5)    # open interval: 0.5 is incompressible (no finite bulk modulus), <= 0 auxetic
 MAX_YOUNGS_MPA = 1e6          # 1 TPa (diamond) is the stiffest solid there is
+MAX_FRICTION = 10.0           # Coulomb coefficient; elastomers on clean hard surfaces reach ~3, nothing dry reaches 10
 TOE_IN_RANGE_DEG = (-60.0, 60.0)
 FPS_RANGE = (0.0, 10000.0)    # open at 0
 # focal length per image width and distortion bounds: the calibration's (FOCAL_PER_WIDTH_RANGE, MAX_ABS_DISTORTION)
@@ -172,6 +173,9 @@ def _validate_values(d: SensorDesign, where: str) -> None:
     for key, nu in [("skin.poisson_ratio", d.skin.poisson_ratio), ("gel.poisson_ratio", d.gel.poisson_ratio)]:
         if not POISSON_RANGE[0] < nu < POISSON_RANGE[1]:
             raise DesignError(f"{where}: {key}: must be in ({POISSON_RANGE[0]:g}, {POISSON_RANGE[1]:g}), got {nu!r}")
+    if not 0.0 <= d.twin_params()["friction"] <= MAX_FRICTION:
+        raise DesignError(f"{where}: twin.friction: must be a Coulomb coefficient in [0, {MAX_FRICTION:g}], "
+                          f"got {d.twin_params()['friction']!r}")
     if not 0 <= d.pattern.dome_height_mm <= MAX_LENGTH_MM:
         raise DesignError(f"{where}: pattern.dome_height_mm: must be in [0, {MAX_LENGTH_MM:g}], "
                           f"got {d.pattern.dome_height_mm!r}")
