@@ -10,8 +10,9 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, LOCAL_ONLY,
-                                                MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT)
+from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, GROW_GATE,
+                                                LOCAL_ONLY, MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT,
+                                                SETTLED, STANDS_OUT)
 from pipeline.vision.identity.fans import _embedded
 from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
 from pipeline.vision.identity.neighbours import _adj
@@ -67,8 +68,8 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
         elif e == _NEED_SEARCH:
             st = _NEED_SEARCH
         else:
-            st = _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots,
-                             blobs, acc, two, two_d2, K, by_y, ys, sweep)
+            st = _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate,
+                             slots, blobs, acc, two, two_d2, K, by_y, ys, sweep)
         status[b] = st
         if st == R_INCONSISTENT:
             n_bad += 1
@@ -87,13 +88,20 @@ def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
 
 
 @numba.njit(cache=True)
-def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc, two,
-                two_d2, K, by_y, ys, sweep):
+def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc,
+                two, two_d2, K, by_y, ys, sweep):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
 
     The immediate design neighbours ``nbr[s]`` are the first entries of ``nbr2[s]`` (both sorted
     by distance; :func:`lattice_of` checks it), so the identified neighbourhood is gathered in one
-    pass with the immediate ones first, and the second shell only when it is fitted at all."""
+    pass with the immediate ones first, and the second shell only when it is fitted at all.
+
+    A blob that passes every test while a free blob (``slot_of`` -1) lies within :data:`GROW_GATE` of
+    its prediction is R_AMBIGUOUS when either blob may be the slot's marker: when the neighbourhood
+    has a wide gap (the prediction is extrapolated), or when the blob is displaced from an otherwise
+    affine neighbourhood (farther from its prediction than :data:`SETTLED` and :data:`STANDS_OUT`
+    times the largest residual of its immediate neighbours). Decided last, so that a blob failing a
+    neighbour's residual stays R_INCONSISTENT, the evidence the anchoring test counts."""
     n_design = _row_length(nbr, s)
     slots[0] = s
     blobs[0] = b
@@ -109,6 +117,9 @@ def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch
     ox, oy, ou, ov = xy[s, 0], xy[s, 1], pts[b, 0], pts[b, 1]
     # the whole design neighbourhood identified: the design half of each fit is tabulated
     whole = n_imm == n_design and m == loo_m[s]
+    d1 = 0.0
+    free_near = False
+    r_max = 0.0                             # largest residual of an immediate neighbour
     _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc)
     for q in range(n_imm + 1):              # the blob itself and its immediate neighbours
         if whole:
@@ -131,6 +142,8 @@ def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch
         r = math.hypot(pts[blobs[q], 0] - pu, pts[blobs[q], 1] - pv) / scale
         if r > gate:
             return R_INCONSISTENT
+        if q > 0:
+            r_max = max(r_max, r)
         if q == 0 and len(pts) >= 2:
             if not search:
                 return _NEED_SEARCH
@@ -139,12 +152,15 @@ def _loo_status(pts, search, b, s, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch
             d2 = math.sqrt(two_d2[1]) / scale
             if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
                 return R_AMBIGUOUS
+            free_near = d2 <= GROW_GATE and slot_of[two[1]] < 0
             if n_imm <= n_design - 2:
                 # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
                 # to b than CLOSE_BLOB separations leaves open which of the two is the marker
                 _search(pts, pts[b, 0], pts[b, 1], two, two_d2, by_y, ys, sweep)
                 if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
                     return R_AMBIGUOUS
+    if free_near and (n_imm <= n_design - 2 or d1 > max(SETTLED, STANDS_OUT * r_max)):
+        return R_AMBIGUOUS
     return 0
 
 
