@@ -46,6 +46,11 @@ __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM"
 FRICTION_SETTLE_MAX_STEPS = 1200  # with friction a dragged contact relaxes by its anchors sliding at most
                                   # stick.STICK_MAX_SLIDE_MM a step: the letter 'o' after its rapid 2 mm + 2 mm
                                   # move settled in 897 steps (damped continuation off; 400 + 400 damped did not)
+CONTACT_POINT_SETTLE_SCALE = 2.0  # with friction the contact points must settle to half the markers' tolerance: a sliding
+                                  # contact's last relaxation is a slow drift of its anchors (0.3 mm slide at μ = 0.3: Q/P
+                                  # 0.362 when the settle stopped at the markers' tolerance, 0.345 at half, 0.330 at a
+                                  # quarter; the Coulomb cap plus the normal forces' lean is 0.33). Cost on the axis mesh
+                                  # at 5 mm, μ = 1: σ² = 10 84 -> 97 steps, σ² = 5/3 61 -> 158 (a quarter: 259, 302)
 FRICTION_SETTLE_DAMPING_PER_S = 30.0  # with friction a settle runs with mass-proportional DOF damping c = α m (α /s):
                                   # the stuck skin's ringing then dies in fewer steps, and with each step costing
                                   # ~300 CG iterations at the stick tolerance that is the press's cost. The
@@ -301,8 +306,8 @@ class SkinSim(SkinReadout):
         if max_steps is None:
             max_steps = FRICTION_SETTLE_MAX_STEPS if len(self._stick_eq) else SETTLE_MAX_STEPS
 
-        def with_anchors():
-            return (np.vstack([self.markers()[0], self._contact_points_mm()]),)
+        def with_anchors():   # the contact points settle to 1/CONTACT_POINT_SETTLE_SCALE of the markers' tolerance
+            return (np.vstack([self.markers()[0], CONTACT_POINT_SETTLE_SCALE * self._contact_points_mm()]),)
         if not len(self._stick_eq):
             return solve.settle(self.step, self.markers, self.model, tol_mm=tol_mm, consecutive=consecutive,
                                 max_steps=max_steps, abort=abort, damped_steps=damped_steps)
