@@ -116,7 +116,7 @@ class SkinSim(SkinReadout):
     mesh : MeshSpec resolution
     timestep_s : physics step (s); the equilibrium does not depend on it
     friction : Coulomb friction skin/indenter; None (default): the design's ``[twin] friction``
-        (:data:`pipeline.design.TWIN_KEYS`: 0, frictionless contact, condim 1)
+        (:data:`pipeline.design.TWIN_KEYS`: 1.0); 0 = frictionless contact (condim 1)
 
     Notes
     -----

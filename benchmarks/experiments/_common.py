@@ -168,7 +168,7 @@ def friction_knob(ctx, out) -> float | None:
     None (default) for each design's own ``[twin] friction``; the report's notes say which."""
     mu = ctx.param("friction", None)
     if mu is None:
-        out.notes.append("Contact friction: each design's [twin] friction (the built-in designs: 0, frictionless).")
+        out.notes.append("Contact friction: each design's [twin] friction (the built-in designs: μ = 1).")
         return None
     mu = float(mu)
     if not 0.0 <= mu <= 10.0:
