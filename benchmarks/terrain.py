@@ -67,7 +67,8 @@ class TerrainScanError(UserError, ValueError):
 
 #: Bump when a tap's computation changes in a way that changes its points (then no old tap file is
 #: reused). 2: tap files carry their resume key. 3: and the pressed frame's physics verdict. 4: face contact.
-TAP_CODE_VERSION = 4
+#: 5: friction from the design's [twin] friction (1 by default), part of the key.
+TAP_CODE_VERSION = 5
 #: The skin mesh of a twin tap (``twin.physics.MeshSpec`` fields). Face contact: the outer faces also collide
 #: with spheres on the relief's crests, cliffs and steep flanks (``twin.contact``); with vertex contact alone
 #: the faces sat 0.57-0.99 mm inside the relief on every quick tap (all five invalid), with it 0.000-0.032 mm
@@ -100,7 +101,7 @@ class TapJob:
         inputs = {"region": self.region, "index": self.index, "centre_mm": [round(v, 9) for v in self.centre_mm],
                   "tap_z_mm": round(self.tap_z_mm, 9), "sensor": self.sensor, "seed": self.seed,
                   "step_mm": round(self.step_mm, 9), "design": to_dict(_design()), "code": TAP_CODE_VERSION,
-                  "mesh": TAP_MESH}
+                  "mesh": TAP_MESH, "friction": _design().twin_params()["friction"]}
         if self.setup is not None and self.setup.mode != "oracle":
             inputs["calibration"] = self.setup.provenance
         return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()

@@ -1,6 +1,8 @@
 """The digital twin's own benchmark (``stereotactip bench twin``): seconds per press, milliseconds per stereo
 frame, the skin–indenter gap and face-level penetration, on the default design and the contact meshes
-(wrapped with units and gates by ``benchmarks/experiments/twin.py``)."""
+(wrapped with units and gates by ``benchmarks/experiments/twin.py``). The presses are frictionless (μ = 0): what
+is timed is the direct quasi-static solve against the followed path, which only frictionless contact allows; a
+frictional press follows the path (README "Known limits")."""
 
 from __future__ import annotations
 
@@ -21,7 +23,7 @@ def _timed_press(design, indenter, mesh, depth_mm: float = 5.0):
     from twin.physics import SkinSim
 
     t0 = time.perf_counter()
-    sim = SkinSim(design, indenter, mesh=mesh)
+    sim = SkinSim(design, indenter, mesh=mesh, friction=0.0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(depth_mm))
     return time.perf_counter() - t0, stats, truth
 
@@ -100,7 +102,7 @@ def _default_presses(design, ind) -> _DefaultPresses:
     for _ in tqdm(range(N_PRESS), desc="bench twin: presses"):
         ref_ms.append(reference_workload_ms(repeats=5))
         t0 = time.perf_counter()
-        sim = SkinSim(design, ind)
+        sim = SkinSim(design, ind, friction=0.0)
         t1 = time.perf_counter()
         (_, stats, truth), = robot.execute(sim, robot.press_motion(DEPTH_MM))
         press_s.append(time.perf_counter() - t0)
@@ -130,7 +132,7 @@ def _followed_press(design, ind) -> _FollowedPress:
     from twin.physics import SkinSim
 
     t0 = time.perf_counter()
-    sim = SkinSim(design, ind)
+    sim = SkinSim(design, ind, friction=0.0)
     (_, _, truth), = robot.execute(sim, robot.press_motion(DEPTH_MM), direct=False)
     seconds = time.perf_counter() - t0
     return _FollowedPress(seconds, truth, sim.gap_mm(), int(sim.steps_taken), int(sim.model.nv))

@@ -155,10 +155,10 @@ def _child(tmp_path, extends, body="", name="child"):
 
 
 def test_twin_friction_is_a_checked_design_key(tmp_path):
-    """``[twin] friction`` (the twin's skin/indenter Coulomb coefficient) defaults to 0, can be set by an override
+    """``[twin] friction`` (the twin's skin/indenter Coulomb coefficient) defaults to 1, can be set by an override
     even where the design has no [twin] section, survives writing the design out, and is refused outside [0, 10]."""
     d = load_design("hexagon127")
-    assert d.twin_params()["friction"] == 0.0
+    assert d.twin_params()["friction"] == 1.0
     rough = d.with_overrides({"twin.friction": 0.8})
     assert rough.twin_params()["friction"] == 0.8
     path = tmp_path / "rough.toml"

@@ -21,7 +21,7 @@ PENETRATION_TOL_MM = 0.05  # contact spheres may sink this much into the height 
 
 
 def _press(design, ind, depth, mesh=MeshSpec()):
-    sim = SkinSim(design, ind, mesh=mesh)
+    sim = SkinSim(design, ind, mesh=mesh, friction=0.0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(depth))
     assert sim.warnings() == {}
     return sim, stats, truth
@@ -30,7 +30,7 @@ def _press(design, ind, depth, mesh=MeshSpec()):
 @pytest.mark.parametrize("name", [n for n in list_designs() if not load_design(n).monocular])
 def test_every_design_compiles_steps_and_has_exact_rest_markers(name):
     d = load_design(name)
-    sim = SkinSim(d, make_indenter("flat"), mesh=COARSE)
+    sim = SkinSim(d, make_indenter("flat"), mesh=COARSE, friction=0.0)
     xyz, axis = sim.markers()
     assert np.abs(xyz - d.rest_markers_mm()).max() < 1e-9
     assert np.allclose(axis, [0, 0, -1])
@@ -51,7 +51,7 @@ def test_flat_plate_force_between_layer_estimates():
     gel suppress most bulging, so we require F >= 0.4 F_c.
     """
     d = load_design("hexagon127")
-    sim = SkinSim(d, make_indenter("flat"), mesh=MeshSpec(fine_mm=2.0))
+    sim = SkinSim(d, make_indenter("flat"), mesh=MeshSpec(fine_mm=2.0), friction=0.0)
     sim.set_pose(0, 0, -0.1, 0)
     sim.move_to(0, 0, 0.5, 0)
     sim.settle()
@@ -217,7 +217,7 @@ def test_thicker_skin_conforms_less_to_a_sharp_gaussian():
 
 def test_depth_limit_is_enforced():
     d = load_design("hexagon127")
-    sim = SkinSim(d, make_indenter("flat"), mesh=COARSE)
+    sim = SkinSim(d, make_indenter("flat"), mesh=COARSE, friction=0.0)
     with pytest.raises(PhysicsError, match="exceeds"):
         robot.execute(sim, robot.press_motion(max_depth_mm(d) + 0.5))
 
@@ -250,7 +250,8 @@ def test_direct_solve_reaches_the_followed_paths_equilibrium(sigma2, n_frames):
     ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=sigma2)
     runs = {}
     for direct in (True, False):
-        sim = SkinSim(d, ind)          # the twin's mesh (on the 2.5 mm test mesh the σ² = 10 jump is rejected)
+        # the twin's mesh (on the 2.5 mm test mesh the σ² = 10 jump is rejected)
+        sim = SkinSim(d, ind, friction=0.0)
         runs[direct] = (robot.execute(sim, robot.press_motion(4.0, n_frames=n_frames), direct=direct), sim)
         assert sim.warnings() == {}
     (fast, sim_f), (slow, sim_s) = runs[True], runs[False]
@@ -269,7 +270,7 @@ def test_direct_solve_is_rejected_and_undone_where_vertices_would_tunnel():
     then follows the path (same result as direct=False)."""
     d = load_design("hexagon127")
     ind = make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=np.pi / 15)
-    sim = SkinSim(d, ind, mesh=COARSE)
+    sim = SkinSim(d, ind, mesh=COARSE, friction=0.0)
     q0, v0, pose0, t0 = sim.data.qpos.copy(), sim.data.qvel.copy(), sim.pose, sim.data.time
     assert sim.solve_at(0.0, 0.0, 5.0, 0.0) is None
     assert sim.direct_rejections == 1 and sim.direct_wasted_steps > 0
@@ -278,7 +279,7 @@ def test_direct_solve_is_rejected_and_undone_where_vertices_would_tunnel():
     assert np.all(sim.model.dof_damping == 0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0))
     assert not stats.direct
-    sim2 = SkinSim(d, ind, mesh=COARSE)
+    sim2 = SkinSim(d, ind, mesh=COARSE, friction=0.0)
     (_, _, ref), = robot.execute(sim2, robot.press_motion(5.0), direct=False)
     assert np.abs(truth.marker_xyz_mm - ref.marker_xyz_mm).max() < DIRECT_TOL_MM
     assert sim.outer_penetration_mm() <= PENETRATION_TOL_MM
@@ -293,15 +294,15 @@ def test_direct_solve_refuses_friction():
 
 
 def test_friction_comes_from_the_design_unless_given():
-    """The coefficient a press uses is the design's ``[twin] friction`` (the built-in designs: 0), overridden by
-    the caller's; a frictional model carries the x-y stick ties of every free outer vertex, a frictionless one none."""
+    """The coefficient a press uses is the design's ``[twin] friction`` (default 1), overridden by the caller's; a
+    frictional model carries the x-y stick ties of every free outer vertex, a frictionless one none."""
     d = load_design("hexagon127")
     ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=50)
-    plain = SkinSim(d, ind, mesh=COARSE)
+    rough = SkinSim(d, ind, mesh=COARSE)
+    assert rough.friction == 1.0 and rough.model.neq == 2 * int(np.count_nonzero(rough._is_free_top))
+    assert SkinSim(d.with_overrides({"twin.friction": 0.7}), ind, mesh=COARSE).friction == 0.7
+    plain = SkinSim(d.with_overrides({"twin.friction": 0.7}), ind, mesh=COARSE, friction=0.0)
     assert plain.friction == 0.0 and plain.model.neq == 0
-    rough = SkinSim(d.with_overrides({"twin.friction": 0.7}), ind, mesh=COARSE)
-    assert rough.friction == 0.7 and rough.model.neq == 2 * int(np.count_nonzero(rough._is_free_top))
-    assert SkinSim(d.with_overrides({"twin.friction": 0.7}), ind, mesh=COARSE, friction=0.0).friction == 0.0
     with pytest.raises(PhysicsError, match="coefficient"):
         SkinSim(d, ind, mesh=COARSE, friction=-0.1)
 
@@ -313,11 +314,11 @@ def test_model_cache_gives_the_same_physics():
     ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=20)
     out = []
     for _ in range(2):
-        sim = SkinSim(d, ind, mesh=COARSE)
+        sim = SkinSim(d, ind, mesh=COARSE, friction=0.0)
         (_, _, t), = robot.execute(sim, robot.press_motion(2.0))
         out.append((sim.model_from_cache, t.marker_xyz_mm))
     assert out[1][0] and np.array_equal(out[0][1], out[1][1])
-    assert not SkinSim(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=21), mesh=COARSE).model_from_cache
+    assert not SkinSim(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=21), mesh=COARSE, friction=0.0).model_from_cache
 
 
 # ----- mesh symmetry and contact mechanics (bench physics has the full comparison) ---------------------------
@@ -352,7 +353,8 @@ def test_symmetric_sphere_press_gives_a_symmetric_field_on_the_mirrored_split():
     d = load_design("hexagon127")
     out = {}
     for mirrored in (True, False):
-        sim = SkinSim(d, make_indenter("sphere", radius_mm=10.0), mesh=MeshSpec(mirrored_split=mirrored))
+        sim = SkinSim(d, make_indenter("sphere", radius_mm=10.0), mesh=MeshSpec(mirrored_split=mirrored),
+                      friction=0.0)
         (_, stats, truth), = robot.execute(sim, robot.press_motion(3.0))
         assert stats.converged and sim.warnings() == {}
         out[mirrored] = _mirror_errors(d, truth)
@@ -425,7 +427,7 @@ def test_nodal_volumetric_sim_applies_the_energy_gradient_and_restores_exactly()
     from twin.model import _FLIP, flex_elasticity
 
     d = _uniform(load_design("hexagon127"), 0.49)
-    sim = SkinSim(d, make_indenter("sphere", radius_mm=10.0), mesh=MeshSpec(volumetric="nodal"))
+    sim = SkinSim(d, make_indenter("sphere", radius_mm=10.0), mesh=MeshSpec(volumetric="nodal"), friction=0.0)
     E_flex, nu_flex = flex_elasticity(sim.mesh_spec, materials.gel_material(d))
     E = units.mpa_to_pa(d.gel.youngs_modulus_mpa)
     assert nu_flex == volumetric.NU_DEV
@@ -575,7 +577,7 @@ def test_rounded_edge_keeps_the_flat_top_and_lowers_the_clamp_to_the_mount():
             X = mesh.nodes_mm[np.vstack([mesh.tets_skin, mesh.tets_gel])]
             vol6.append(np.linalg.det(np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)))
         assert np.min(vol6[0] * np.sign(vol6[1])) > 1e-3                        # none inverted or degenerate
-        sim = SkinSim(d, make_indenter("flat"), mesh=spec)
+        sim = SkinSim(d, make_indenter("flat"), mesh=spec, friction=0.0)
         assert np.abs(sim.markers()[0] - d.rest_markers_mm()).max() < 0.01
     with pytest.raises(PhysicsError):
         build_mesh(load_design("square121"), spec)

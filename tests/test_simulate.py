@@ -42,7 +42,8 @@ def test_truth_round_trip_and_validation(tmp_path):
 @pytest.mark.physics
 def test_press_truth_frames_at_increasing_depth():
     d = load_design("hexagon127")
-    run = press_truth(d, make_indenter("gaussian", sigma2_mm2=50), 2.0, n_frames=2, mesh=MeshSpec(fine_mm=2.5))
+    run = press_truth(d, make_indenter("gaussian", sigma2_mm2=50), 2.0, n_frames=2, mesh=MeshSpec(fine_mm=2.5),
+                      friction=0.0)
     assert len(run) == 2 and run.meta["mujoco_warnings"] == {}
     assert [t.robot_pose[2] for t in run] == [-1.0, -2.0]
     assert run.meta["timestamps_s"] == [2.0, 3.0]                 # 1 mm approach + depth at 1 mm/s
@@ -56,7 +57,7 @@ def test_depth_limits():
     d = load_design("hexagon127")
     for bad in (-1.0, max_depth_mm(d) + 0.1, float("nan")):
         with pytest.raises(PhysicsError, match="depth"):
-            press_truth(d, make_indenter("flat"), bad)
+            press_truth(d, make_indenter("flat"), bad, friction=0.0)
 
 
 @pytest.mark.parametrize("argv, msg", [

@@ -100,14 +100,14 @@ def test_face_contact_keeps_a_sharp_tip_out_where_vertex_contacts_let_it_through
 
     ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=2.5)
     d = load_design("hexagon127")
-    sim = SkinSim(d, ind)                                  # vertex contacts only (the default)
+    sim = SkinSim(d, ind, friction=0.0)                    # vertex contacts only (the default mesh)
     assert not sim.face_contact
     (_, _, truth), = robot.execute(sim, robot.press_motion(3.0))
     v = truth.validity
     assert v["penetration_vertex_max_mm"] <= PENETRATION_MAX_MM
     assert v["penetration_max_mm"] > 0.5
     assert not v["valid"] and any("inside the indenter" in r for r in v["reasons"])
-    sim = SkinSim(d, ind, mesh=MeshSpec(face_contact=True))
+    sim = SkinSim(d, ind, mesh=MeshSpec(face_contact=True), friction=0.0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(3.0))
     v = truth.validity
     assert sim.face_contact and sim.face_contact_fallback is None
@@ -135,7 +135,7 @@ def test_face_contact_holds_a_sine_pressed_across_the_module_out_of_the_skin():
 
     d = load_design("hexagon127")
     ind = make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=np.pi / 5)
-    sim = SkinSim(d, ind, mesh=MeshSpec(face_contact=True))
+    sim = SkinSim(d, ind, mesh=MeshSpec(face_contact=True), friction=0.0)
     # no face of the contact flex has a vertex on the world body (the clamped rim)
     fl = int(sim._face_flex[0])
     m = sim.model
@@ -148,7 +148,7 @@ def test_face_contact_holds_a_sine_pressed_across_the_module_out_of_the_skin():
     assert sim.warnings() == {} and stats.converged
     assert v["valid"] and v["penetration_max_mm"] <= PENETRATION_MAX_MM, v["reasons"]
     assert v["contact_force_n"] > 0
-    sim = SkinSim(d, ind)                                  # vertex contacts only: faces inside the crests
+    sim = SkinSim(d, ind, friction=0.0)                    # vertex contacts only: faces inside the crests
     (_, _, truth), = robot.execute(sim, robot.press_motion(3.0))
     assert not truth.validity["valid"] and truth.validity["penetration_max_mm"] > 1.0
 
@@ -169,7 +169,7 @@ def test_skin_beside_a_rounded_edge_stays_out_of_a_sine_wider_than_the_module():
 
     ind = make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=2 * np.pi / 5)
     mesh = MeshSpec(face_contact=True, fine_half_mm=15.0, edge_start_mm=16.5, edge_drop_mm=5.0)
-    sim = SkinSim(load_design("hexagon127"), ind, mesh=mesh)
+    sim = SkinSim(load_design("hexagon127"), ind, mesh=mesh, friction=0.0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(5.0, yaw_deg=120.0))
     v = truth.validity
     assert sim.face_contact_fallback is None and sim.warnings() == {} and stats.converged
@@ -195,7 +195,7 @@ def test_unstable_face_contact_falls_back_to_vertex_contact_and_is_flagged(monke
     monkeypatch.setattr(model, "_face_contact_faces", lambda mesh: mesh.top[mesh.top_faces])   # every face
     monkeypatch.setattr(model, "_MODEL_CACHE", OrderedDict())    # a model compiled with those faces
     sim = SkinSim(load_design("hexagon127"), make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=np.pi / 5),
-                  mesh=MeshSpec(face_contact=True))
+                  mesh=MeshSpec(face_contact=True), friction=0.0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(3.0))
     assert not sim.face_contact and "solve failed" in sim.face_contact_fallback
     assert sim.warnings() == {} and stats.converged
@@ -225,7 +225,7 @@ def test_a_face_contact_solve_that_diverges_into_a_mujoco_error_falls_back(monke
 
     monkeypatch.setattr(robot, "_execute", diverging)
     sim = SkinSim(load_design("hexagon127"), make_indenter("gaussian", h_mm=5, sigma2_mm2=10),
-                  mesh=MeshSpec(face_contact=True))
+                  mesh=MeshSpec(face_contact=True), friction=0.0)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(1.0))
     assert not sim.face_contact and "solve failed" in sim.face_contact_fallback
     assert stats.converged and sim.warnings() == {} and truth.validity["contact_force_n"] > 0

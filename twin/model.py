@@ -72,8 +72,12 @@ STICK_DAMPRATIO = 1.0       # the stick constraint's damping ratio (time constan
 STICK_TIMECONST_STEPS = 4.0
 STICK_SOLVER_TOLERANCE = 1e-10  # with friction: CG's tolerance and iteration cap (friction_solver_options)
 STICK_SOLVER_ITERATIONS = 1000
-DRIVEN_INDENTER_MASS_KG = 100.0   # with friction: the indenter's mass, >> the skin's scaled vertex masses, so contact
-                                  # forces do not deflect it within a step (its position is re-imposed anyway)
+DRIVEN_INDENTER_MASS_KG = 1e5     # with friction: the indenter's mass, >> the skin's whole scaled mass (~190 kg on the
+                                  # axis contact mesh), so contact forces do not deflect it within a step (its position
+                                  # is re-imposed after every step). At 100 kg the skin pushed it back ~0.008 mm a
+                                  # step, the contacts saw the indenter receding and carried less than the load, and
+                                  # stuck skin sat 0.06-0.18 mm inside wide Gaussians (σ² = 50/3, 50 at 5 mm); at 1e5
+                                  # 0.018-0.024 mm, at 1e4 and 1e6 the same within 0.001 mm
 # collision bits: vertex spheres (2/1) meet the height field (1/2); outer faces (4/8) meet surface spheres (8/4)
 _BIT_FACES, _BIT_SPHERES = 4, 8
 

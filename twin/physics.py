@@ -38,6 +38,7 @@ from twin.model import _BIT_FACES, _BIT_SPHERES, _FLIP
 from twin.solve import DIRECT_ABORT_MM, DIRECT_ACCEPT_MM, SETTLE_CONSECUTIVE, SETTLE_DAMPED_STEPS, \
     SETTLE_MAX_STEPS, SETTLE_TOL_MM, SettleStats
 from twin.readout import SkinReadout
+from twin.stick import resolve_friction
 
 # re-exported from twin.mesh and twin.solve: what a caller of SkinSim passes it, gets back or catches
 __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm", "DIRECT_ACCEPT_MM",
@@ -46,17 +47,15 @@ __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM"
 FRICTION_SETTLE_MAX_STEPS = 1200  # with friction a dragged contact relaxes by its anchors sliding at most
                                   # stick.STICK_MAX_SLIDE_MM a step: the letter 'o' after its rapid 2 mm + 2 mm
                                   # move settled in 897 steps (damped continuation off; 400 + 400 damped did not)
+CONTACT_POINT_SETTLE_SCALE = 2.0  # with friction the contact points settle to half the markers' tolerance: a sliding
+                                  # contact's last relaxation is its anchors' slow drift (μ = 0.3 slide: Q/P 0.362 at the
+                                  # markers' tolerance, 0.345 at half, 0.330 at a quarter, which doubles a press's steps)
 FRICTION_SETTLE_DAMPING_PER_S = 30.0  # with friction a settle runs with mass-proportional DOF damping c = α m (α /s):
-                                  # the stuck skin's ringing then dies in fewer steps, and with each step costing
-                                  # ~300 CG iterations at the stick tolerance that is the press's cost. The
-                                  # equilibrium is where the forces balance, which damping does not move (σ² = 10,
-                                  # 5 mm, μ = 1: settle 135 -> 47 steps, 12.6 -> 5.2 s, markers within 0.012 mm
-                                  # of the undamped settle, as close as CG at 1e-9 instead of 1e-10 comes; α = 10:
-                                  # 63 steps, 0.009 mm; α = 60 / 100: 43 / 35 steps but 0.019 / 0.026 mm, the damped
-                                  # skin creeping slowly enough to pass the settle criterion short of equilibrium).
-                                  # A sliding contact stops a little less relaxed: 10 mm sphere 1.5 mm, slid 0.3 mm
-                                  # at μ = 0.3, Q/P 0.330 instead of 0.306, the tip following 0.61 instead of 0.56
-                                  # of the slide (μ = 1: 0.95 vs 0.94, Q/P 0.58 vs 0.55)
+                                  # the stuck skin's ringing dies in fewer steps (each ~300 CG iterations at the stick
+                                  # tolerance), and damping does not move where the forces balance (σ² = 10, 5 mm,
+                                  # μ = 1: 135 -> 47 steps, markers within 0.012 mm of the undamped settle, as close
+                                  # as CG at 1e-9 instead of 1e-10 comes; α = 60 / 100: 0.019 / 0.026 mm off, the
+                                  # damped skin creeping past the settle criterion short of equilibrium)
 MAX_INCREMENT_MM = 0.1       # largest indenter move per physics step while clear of the skin
 CONTACT_INCREMENT_MM = 0.06  # ... and while touching it. A contact vertex lags the (zero-velocity) mocap by about
                              # 4 ζ² increments (the steady ramp error of the contact's reference dynamics: time
@@ -93,14 +92,6 @@ def max_depth_mm(design: SensorDesign) -> float:
     return design.optics.gel_thickness_mm - design.pins.height_mm - DEPTH_MARGIN_MM
 
 
-def resolve_friction(design: SensorDesign, friction: float | None) -> float:
-    """The Coulomb coefficient a press uses: ``friction`` if given, else the design's ``[twin] friction``."""
-    mu = float(design.twin_params()["friction"] if friction is None else friction)
-    if not math.isfinite(mu) or not 0.0 <= mu <= 10.0:
-        raise PhysicsError(f"friction {friction!r}: must be a coefficient in [0, 10]")
-    return mu
-
-
 class SkinSim(SkinReadout):
     """The skin module in MuJoCo with one indenter on a mocap "robot".
 
@@ -111,7 +102,7 @@ class SkinSim(SkinReadout):
     mesh : MeshSpec resolution
     timestep_s : physics step (s); the equilibrium does not depend on it
     friction : Coulomb friction skin/indenter; None (default): the design's ``[twin] friction``
-        (:data:`pipeline.design.TWIN_KEYS`: 0, frictionless contact, condim 1)
+        (:data:`pipeline.design.TWIN_KEYS`: 1.0); 0 = frictionless contact (condim 1)
 
     Notes
     -----
@@ -301,8 +292,8 @@ class SkinSim(SkinReadout):
         if max_steps is None:
             max_steps = FRICTION_SETTLE_MAX_STEPS if len(self._stick_eq) else SETTLE_MAX_STEPS
 
-        def with_anchors():
-            return (np.vstack([self.markers()[0], self._contact_points_mm()]),)
+        def with_anchors():   # the contact points settle to 1/CONTACT_POINT_SETTLE_SCALE of the markers' tolerance
+            return (np.vstack([self.markers()[0], CONTACT_POINT_SETTLE_SCALE * self._contact_points_mm()]),)
         if not len(self._stick_eq):
             return solve.settle(self.step, self.markers, self.model, tol_mm=tol_mm, consecutive=consecutive,
                                 max_steps=max_steps, abort=abort, damped_steps=damped_steps)

@@ -32,7 +32,7 @@ import numpy as np
 
 from twin import units
 
-__all__ = ["update", "anchor_offsets", "to_indenter_frame"]
+__all__ = ["update", "anchor_offsets", "to_indenter_frame", "resolve_friction"]
 
 STICK_FORCE_STEPS = 50      # steps of the running mean of a stuck vertex's constraint force
 STICK_SIGNIFICANCE = 2.0     # ... and slides only by the excess beyond this many standard errors of that mean
@@ -42,6 +42,16 @@ STICK_RELAX = 0.1           # a sliding anchor moves this fraction of the excess
                              # (0.3: the axis-mesh σ² = 10 press settles in 219 steps instead of 128) ...
 STICK_MAX_SLIDE_MM = 0.005   # ... and at most this far a step (the neighbours move too: a full step overshoots)
 NORMAL_STEP_MM = 0.05        # central-difference step of the indenter's surface normal
+
+
+def resolve_friction(design, friction: float | None) -> float:
+    """The Coulomb coefficient a press uses: ``friction`` if given, else the design's ``[twin] friction``."""
+    from twin.mesh import PhysicsError
+
+    mu = float(design.twin_params()["friction"] if friction is None else friction)
+    if not math.isfinite(mu) or not 0.0 <= mu <= 10.0:
+        raise PhysicsError(f"friction {friction!r}: must be a coefficient in [0, 10]")
+    return mu
 
 
 def update(model, data, *, friction: float, eq: np.ndarray, qadr: np.ndarray, stick_free: np.ndarray,

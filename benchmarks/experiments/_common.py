@@ -163,13 +163,17 @@ def validity_columns(truth) -> dict:
             "physics_reasons": list(v.get("reasons", ["no physics validity recorded"]))}
 
 
-def friction_knob(ctx, out) -> float | None:
-    """The ``friction`` knob of a press grid (``--param friction=MU``): the Coulomb coefficient every press uses,
-    None (default) for each design's own ``[twin] friction``; the report's notes say which."""
+def friction_knob(ctx, out, default: float | None = None, why: str = "") -> float | None:
+    """The ``friction`` knob of a press grid (``--param friction=MU``): the Coulomb coefficient every press uses;
+    unset, ``default`` (None: each design's own ``[twin] friction``, with ``why`` the grid departs from it); the
+    report's notes say which."""
     mu = ctx.param("friction", None)
-    if mu is None:
-        out.notes.append("Contact friction: each design's [twin] friction (the built-in designs: 0, frictionless).")
+    if mu is None and default is None:
+        out.notes.append("Contact friction: each design's [twin] friction (the built-in designs: μ = 1).")
         return None
+    if mu is None:
+        out.notes.append(f"Contact friction: μ = {default:g} in every press, not the designs' own: {why}")
+        return float(default)
     mu = float(mu)
     if not 0.0 <= mu <= 10.0:
         raise ValueError(f"--param friction={mu!r}: must be a Coulomb coefficient in [0, 10]")

@@ -80,7 +80,8 @@ def _press_series(design, depths, mesh):
     from twin.physics import SkinSim
 
     t0 = time.perf_counter()
-    sim = SkinSim(design, make_indenter("sphere", radius_mm=RADIUS_MM), mesh=mesh)
+    # frictionless: Hertz and the bonded-layer solution it is compared with assume a frictionless indenter contact
+    sim = SkinSim(design, make_indenter("sphere", radius_mm=RADIUS_MM), mesh=mesh, friction=0.0)
     out, prev = [], -robot.APPROACH_MM
     for d in depths:
         wps = (robot.Waypoint(0.0, 0.0, prev, capture=False), robot.Waypoint(0.0, 0.0, float(d)))

@@ -127,7 +127,8 @@ class MonoCamera(_Lens):
 #: physics of a monocular design), with their defaults; every value is a finite number. ``twin.physics`` and
 #: ``twin.tactip`` give them their meaning.
 TWIN_KEYS: dict[str, float] = {
-    "friction": 0.0,               # Coulomb coefficient skin/indenter the twin presses with (0: frictionless)
+    "friction": 1.0,               # Coulomb coefficient skin/indenter the twin presses with (0: frictionless); 1.0:
+                                   # elastomer on a smooth hard polymer, not measured for Agilus30 (sim_assets/README.md)
     "bending_ratio": 0.3,          # membrane bending / stretching stiffness (mm^2)
     "depth_offset_mm": 0.0,        # tap depth of the labels minus the depth into the undeformed dome
     "tilt_frame_deg": 0.0,         # angle of the robot's tilt axes about the sensor axis
