@@ -98,10 +98,11 @@ class TapJob:
         """Digest of everything that determines this tap's points (not where it is written)."""
         from pipeline.design import to_dict
 
+        design = _design()
         inputs = {"region": self.region, "index": self.index, "centre_mm": [round(v, 9) for v in self.centre_mm],
                   "tap_z_mm": round(self.tap_z_mm, 9), "sensor": self.sensor, "seed": self.seed,
-                  "step_mm": round(self.step_mm, 9), "design": to_dict(_design()), "code": TAP_CODE_VERSION,
-                  "mesh": TAP_MESH, "friction": _design().twin_params()["friction"]}
+                  "step_mm": round(self.step_mm, 9), "design": to_dict(design), "code": TAP_CODE_VERSION,
+                  "mesh": TAP_MESH, "friction": design.twin_params()["friction"]}
         if self.setup is not None and self.setup.mode != "oracle":
             inputs["calibration"] = self.setup.provenance
         return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()

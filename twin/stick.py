@@ -30,9 +30,11 @@ from typing import Callable
 
 import numpy as np
 
+from pipeline.design import MAX_FRICTION
 from twin import units
+from twin.mesh import PhysicsError
 
-__all__ = ["update", "anchor_offsets", "to_indenter_frame", "resolve_friction"]
+__all__ = ["update", "anchor_offsets", "to_indenter_frame", "resolve_friction", "check_friction"]
 
 STICK_FORCE_STEPS = 50      # steps of the running mean of a stuck vertex's constraint force
 STICK_SIGNIFICANCE = 2.0     # ... and slides only by the excess beyond this many standard errors of that mean
@@ -44,14 +46,18 @@ STICK_MAX_SLIDE_MM = 0.005   # ... and at most this far a step (the neighbours m
 NORMAL_STEP_MM = 0.05        # central-difference step of the indenter's surface normal
 
 
+def check_friction(mu) -> float:
+    """``mu`` as a float, refused (:class:`~twin.mesh.PhysicsError`) unless a Coulomb coefficient in
+    [0, ``MAX_FRICTION``], the range a design's ``[twin] friction`` is held to."""
+    mu = float(mu)
+    if not math.isfinite(mu) or not 0.0 <= mu <= MAX_FRICTION:
+        raise PhysicsError(f"friction {mu!r}: must be a coefficient in [0, {MAX_FRICTION:g}]")
+    return mu
+
+
 def resolve_friction(design, friction: float | None) -> float:
     """The Coulomb coefficient a press uses: ``friction`` if given, else the design's ``[twin] friction``."""
-    from twin.mesh import PhysicsError
-
-    mu = float(design.twin_params()["friction"] if friction is None else friction)
-    if not math.isfinite(mu) or not 0.0 <= mu <= 10.0:
-        raise PhysicsError(f"friction {friction!r}: must be a coefficient in [0, 10]")
-    return mu
+    return check_friction(design.twin_params()["friction"] if friction is None else friction)
 
 
 def update(model, data, *, friction: float, eq: np.ndarray, qadr: np.ndarray, stick_free: np.ndarray,

@@ -154,11 +154,16 @@ def surface_grid(surface, truth, radius_mm: float, step_mm: float = 0.5) -> dict
 
 
 def validity_columns(truth) -> dict:
-    """The twin frame's own physics verdict (twin.validity, recorded in its truth) as cell columns."""
+    """The twin frame's own physics verdict (twin.validity, recorded in its truth) as cell columns; a figure the
+    verdict could not measure (None: e.g. the penetration of a skin mesh that broke) is NaN, as a missing one."""
     v = truth.validity or {}
-    return {"skin_penetration_mm": v.get("penetration_max_mm", float("nan")),
-            "skin_penetration_p99_mm": v.get("penetration_p99_mm", float("nan")),
-            "contact_force_n": v.get("contact_force_n", float("nan")),
+
+    def num(key):
+        x = v.get(key)
+        return float("nan") if x is None else float(x)
+    return {"skin_penetration_mm": num("penetration_max_mm"),
+            "skin_penetration_p99_mm": num("penetration_p99_mm"),
+            "contact_force_n": num("contact_force_n"),
             "physics_valid": bool(v.get("valid", False)),
             "physics_reasons": list(v.get("reasons", ["no physics validity recorded"]))}
 
@@ -174,9 +179,9 @@ def friction_knob(ctx, out, default: float | None = None, why: str = "") -> floa
     if mu is None:
         out.notes.append(f"Contact friction: μ = {default:g} in every press, not the designs' own: {why}")
         return float(default)
-    mu = float(mu)
-    if not 0.0 <= mu <= 10.0:
-        raise ValueError(f"--param friction={mu!r}: must be a Coulomb coefficient in [0, 10]")
+    from twin.stick import check_friction
+
+    mu = check_friction(mu)
     out.notes.append(f"Contact friction: μ = {mu:g} in every press (--param friction).")
     return mu
 

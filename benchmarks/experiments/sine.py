@@ -166,18 +166,12 @@ def _mean(valid_rows: list[dict], key: str, **sel) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
-def _nanmax(values) -> float:
-    """Largest finite value (NaN if none); a frame whose skin mesh broke records its penetration as None."""
-    v = np.array([np.nan if x is None else float(x) for x in values], dtype=float)
-    return float(np.nanmax(v)) if np.isfinite(v).any() else float("nan")
-
-
 def _score_against_cad(out: Result, rows: list[dict], valid_rows: list[dict], grid: _Grid) -> None:
     """Upper-surface and lowest-point errors (valid cells) overall, per separation × ω; valley gap and skin
     penetration per ω."""
     out.metric("upper_rms_mm", _mean(valid_rows, "upper_rms_mm"), "mm")
     out.metric("lowest_point_rms_mm", _mean(valid_rows, "lowest_point_rms_mm"), "mm")
-    out.metric("skin_penetration_max_mm", _nanmax(r["skin_penetration_mm"] for r in rows), "mm")
+    out.metric("skin_penetration_max_mm", float(np.nanmax([r["skin_penetration_mm"] for r in rows])), "mm")
     for design in grid.designs:
         st = _stag(design.pattern.separation_mm) if design.pattern.separation_mm in SEP_DESIGNS else None
         for k in grid.omega_idx:
@@ -189,7 +183,7 @@ def _score_against_cad(out: Result, rows: list[dict], valid_rows: list[dict], gr
     for k in grid.omega_idx:
         out.metric(f"valley_gap_mm_{_otag(k)}", _mean(valid_rows, "valley_gap_mm", omega_index=k), "mm")
         out.metric(f"skin_penetration_max_mm_{_otag(k)}",
-                   _nanmax(r["skin_penetration_mm"] for r in rows if r["omega_index"] == k), "mm")
+                   float(np.nanmax([r["skin_penetration_mm"] for r in rows if r["omega_index"] == k])), "mm")
 
 
 def _split_verdict(vals: dict, low: list[int], high: list[int]) -> bool | None:

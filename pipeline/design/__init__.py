@@ -36,7 +36,7 @@ from pipeline.design.loading import DEFAULT_DESIGN, design_path, list_designs, l
 from pipeline.design.schema import (PATTERN_KINDS, PATTERN_MAPPINGS, TWIN_KEYS, Camera, Cameras, DesignError, Gel,
                                     Markers, MonoCamera, Optics, Pattern, Pins, Skin)
 from pipeline.design.sensor import SensorDesign
-from pipeline.design.validation import design_from_dict
+from pipeline.design.validation import MAX_FRICTION, design_from_dict
 from pipeline.design.writing import design_digest, mapping_to_toml, to_dict, to_toml
 
 __all__ = [
@@ -44,6 +44,7 @@ __all__ = [
     "PATTERN_KINDS",
     "PATTERN_MAPPINGS",
     "TWIN_KEYS",
+    "MAX_FRICTION",
     "DesignError",
     "Pattern",
     "Skin",
