@@ -63,16 +63,16 @@ def design_order(xy: np.ndarray, width: int = DESIGN_ORDER_WIDTH) -> np.ndarray:
 @numba.njit(inline="always")
 def _keep(out_idx, out_d2, n, k, i, d):
     """Offer point ``i`` at squared distance ``d`` to the sorted prefix ``out_idx[:n]`` / ``out_d2[:n]`` of at most
-    ``k`` entries; returns the new length. It enters only when strictly nearer than the k-th kept, so of tied
-    points offered in index order the lower index stays first."""
+    ``k`` entries; returns the new length. (squared distance, index) is compared as a pair, so points may be
+    offered in any order: of tied points the lower index stays first."""
     if n == k:
-        if not d < out_d2[k - 1]:
+        if not (d < out_d2[k - 1] or (d == out_d2[k - 1] and i < out_idx[k - 1])):
             return n
         j = k - 1
     else:
         j = n
         n += 1
-    while j > 0 and out_d2[j - 1] > d:
+    while j > 0 and (out_d2[j - 1] > d or (out_d2[j - 1] == d and out_idx[j - 1] > i)):
         out_idx[j] = out_idx[j - 1]
         out_d2[j] = out_d2[j - 1]
         j -= 1
@@ -92,26 +92,6 @@ def nearest(pts, x, y, k, out_idx, out_d2):
         dx = pts[i, 0] - x
         dy = pts[i, 1] - y
         n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
-
-
-@numba.njit(inline="always")
-def _keep_lex(out_idx, out_d2, n, k, i, d):
-    """:func:`_keep` for points offered in any order: (squared distance, index) compared as a pair,
-    so the kept prefix is the one :func:`_keep` leaves after offers in index order."""
-    if n == k:
-        if not (d < out_d2[k - 1] or (d == out_d2[k - 1] and i < out_idx[k - 1])):
-            return n
-        j = k - 1
-    else:
-        j = n
-        n += 1
-    while j > 0 and (out_d2[j - 1] > d or (out_d2[j - 1] == d and out_idx[j - 1] > i)):
-        out_idx[j] = out_idx[j - 1]
-        out_d2[j] = out_d2[j - 1]
-        j -= 1
-    out_idx[j] = i
-    out_d2[j] = d
-    return n
 
 
 @numba.njit(cache=True)
@@ -147,14 +127,14 @@ def nearest_swept(pts, by_y, ys, x, y, k, out_idx, out_d2):
         if n == k and dy * dy > out_d2[k - 1]:
             break
         dx = pts[i, 0] - x
-        n = _keep_lex(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
+        n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
     for j in range(hi - 1, -1, -1):
         i = by_y[j]
         dy = pts[i, 1] - y
         if n == k and dy * dy > out_d2[k - 1]:
             break
         dx = pts[i, 0] - x
-        n = _keep_lex(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
+        n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
 
 
 @numba.njit(cache=True)
