@@ -15,7 +15,9 @@ Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.t
    follow, ``twin.pin_rotation`` in [0, 1], with the design's pin height), the membrane's
    bending/stretching ratio (log-scale bounded search) and the depth offset of the labels (first touch vs
    the labelled zero), each by a bounded 1-D search on the training taps (pin rotation, bending, offset,
-   pin rotation again), scored on the markers' displacement from the reference tap.
+   pin rotation again), scored on the markers' displacement from the reference tap; then the height of the
+   tap's tilt pivot (``twin.tilt_pivot_mm``, a grid from the dome's centre to its apex, the depth offset
+   re-searched for each, scored on every training tap), bending and pin rotation once more.
 4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
    printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
 5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
@@ -47,14 +49,17 @@ from pipeline.vision.tactip_id import frame_stats, identify_by_reference, identi
 from twin.tactip import PIN_MODEL, TAP_MODEL, DomeSkin, TapPose, check_monocular, project_markers, render_frame
 from benchmarks.tapdata import TapDataError, digest, load_tap_frames, read_frame, split_indices
 
-__all__ = ["FitContext", "apply_params", "PIN_ROTATION_RANGE", "FITTED_POSITION_PARAMETERS", "camera_vector",
+__all__ = ["FitContext", "apply_params", "PIN_ROTATION_RANGE", "TILT_PIVOTS_MM", "FITTED_POSITION_PARAMETERS", "camera_vector",
            "fit_layout", "fit_camera_reference", "fit_camera_all",
            "fit_physics", "fit_appearance", "CAM_KEYS", "LAYOUT_SEPARATIONS_MM"]
 
 CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
 #: parameters that place the markers: pin spacing, the camera, tilt frame and mirror, bending, depth offset,
-#: pin rotation
-FITTED_POSITION_PARAMETERS = 1 + len(CAM_KEYS) + 4 + 1
+#: pin rotation, tilt pivot
+FITTED_POSITION_PARAMETERS = 1 + len(CAM_KEYS) + 4 + 1 + 1
+#: candidate heights (mm) of the tap's tilt pivot above the dome's centre of curvature: from the centre
+#: (a tilted surface first touches at depth 0) to the apex of the 20 mm dome
+TILT_PIVOTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0)
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
 
 
@@ -133,7 +138,7 @@ class FitContext:
                       json.dumps(to_dict(self.design), sort_keys=True, default=str), TAP_MODEL, PIN_MODEL)
 
     # ----- twin taps ----------------------------------------------------------------------
-    _SKIN_KEYS = ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror")
+    _SKIN_KEYS = ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror", "tilt_pivot_mm")
 
     def _tap_key(self, i: int, params: dict, keys=_SKIN_KEYS + ("pin_rotation",)) -> tuple:
         return (i, tuple(sorted((a, round(b, 9)) for a, b in params.items() if a in keys)))
@@ -388,6 +393,12 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     twin["depth_offset_mm"] = float(r.x)
     bar.update(1)
     twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
+    twin["tilt_pivot_mm"], pivot_scores = _fit_tilt_pivot(ctx, design, search, twin, bar)
+    f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
+    r = minimize_scalar(f_b, bounds=(-2.5, 1.5), method="bounded", options={"xatol": 0.05, "maxiter": 14})
+    twin["bending_ratio"] = float(10 ** r.x)
+    twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
+    bar.update(1)
     f_a = lambda a: ctx.displacement_rms(design, search, {**twin, "pin_rotation": a})  # noqa: E731
     f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
     f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
@@ -404,6 +415,7 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     bar.update(1)
     return twin, {"grid": [[float(a), float(b), float(c)] for a, b, c in grid], "rms_px_search": p0,
                   "displacement_rms_px_search": f0, "sd": sd, "pin_rotation": twin["pin_rotation"],
+                  "tilt_pivot_scores": pivot_scores,
                   "search_frames": [ctx.frames[i].path.name for i in search]}
 
 
@@ -420,6 +432,25 @@ def _fit_pin_rotation(ctx: FitContext, design: SensorDesign, search, twin: dict)
     r = minimize_scalar(f, bounds=PIN_ROTATION_RANGE, method="bounded", options={"xatol": 0.005, "maxiter": 25})
     best = min([(float(r.fun), float(r.x))] + [(f(a), a) for a in PIN_ROTATION_RANGE])
     return float(best[1])
+
+
+def _fit_tilt_pivot(ctx: FitContext, design: SensorDesign, search, twin: dict, bar) -> tuple[float, list]:
+    """The height of the tap's tilt pivot over :data:`TILT_PIVOTS_MM`: for each, the depth offset re-searched on
+    the search taps (a higher pivot presses tilted taps deeper, which the offset partly absorbs), then scored
+    on the displacements of every training tap (the search taps alone under-weight the most tilted taps,
+    where the pivot matters). Returns the best height and the [height, offset, RMS px] rows."""
+    rows = []
+    train = [i for i in ctx.train if i != ctx.ref]
+    for h in TILT_PIVOTS_MM:
+        t = {**twin, "tilt_pivot_mm": float(h)}
+        f_d = lambda v, t=t: ctx.displacement_rms(design, search, {**t, "depth_offset_mm": v})  # noqa: E731
+        r = minimize_scalar(f_d, bounds=(-1.5, 1.5), method="bounded", options={"xatol": 0.02, "maxiter": 12})
+        t["depth_offset_mm"] = float(r.x)
+        rows.append([float(h), float(r.x), ctx.displacement_rms(design, train, t)])
+        bar.update(1)
+    h, off, _ = min(rows, key=lambda row: row[2])
+    twin["depth_offset_mm"] = off
+    return h, rows
 
 
 # ----- stage 5: appearance -----------------------------------------------------------------

@@ -15,7 +15,7 @@ import numpy as np
 
 from benchmarks.tactip_fit import (CAM_KEYS, FITTED_POSITION_PARAMETERS, LAYOUT_SEPARATIONS_MM, FitContext,
                                    apply_params, camera_vector, fit_appearance, fit_camera_all, fit_camera_reference,
-                                   fit_layout, fit_physics)
+                                   fit_layout, fit_physics, TILT_PIVOTS_MM)
 from pipeline.design import load_design, to_toml
 from pipeline.io.atomic import atomic_write_json, atomic_write_text
 from twin.tactip import check_monocular
@@ -25,7 +25,7 @@ __all__ = ["fit_twin", "register", "cmd_fit", "PHYSICS_STAGE"]
 
 #: what the physics stage fits and scores (part of its cache key: a cached result of another version is
 #: recomputed, not reused)
-PHYSICS_STAGE = "tilt frame on positions; pin rotation, bending, depth offset on displacements"
+PHYSICS_STAGE = "tilt frame on positions; pin rotation, bending, depth offset, tilt pivot on displacements"
 
 
 
@@ -55,7 +55,7 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
     log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
         f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
         f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
-    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 5, desc="fit-twin", unit="step", disable=not progress)
+    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 6 + len(TILT_PIVOTS_MM), desc="fit-twin", unit="step", disable=not progress)
     st = _Stages(Path(str(out) + ".cache"), ctx.key(), bar, log)
     twin0 = design.twin_params()
     s0 = _layout_stage(st, ctx, twin0)
@@ -77,7 +77,7 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
         "train": [ctx.frames[i].path.name for i in ctx.train], "held_out": [ctx.frames[i].path.name for i in ctx.held],
         "reference": ctx.frames[ctx.ref].path.name, "camera": s4["report"], "physics": {
             "values": {k: twin[k] for k in ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror",
-                                            "pin_rotation")},
+                                            "pin_rotation", "tilt_pivot_mm")},
             "sd": phys["sd"], "rms_px_search": phys["rms_px_search"]},
         "appearance": {"values": {k: s5["twin"][k] for k in ("marker_grey", "marker_shading", "background_grey",
                                                               "edge_px", "noise_grey", "marker_scale")},
@@ -139,7 +139,7 @@ def _physics_stage(st: _Stages, ctx: FitContext, d1, twin0: dict, s1: dict) -> d
 
     s23, hit = _cached(st.cache, "2_physics", digest(st.base_key, s1["cam"], PHYSICS_STAGE), fit)
     if hit:
-        st.bar.update(24 + 4)
+        st.bar.update(24 + 5 + len(TILT_PIVOTS_MM))
     return s23
 
 
@@ -194,6 +194,8 @@ def _log_summary(log, summary: dict, c: dict, twin: dict, phys: dict, out: Path)
     log(f"  pin_rotation    {twin['pin_rotation']:.3f} ± {phys['sd']['pin_rotation']:.3f} "
         f"(pins {summary['pin_height_mm']:.2f} mm, the design's) "
         f"(displacement RMS on the search taps {phys['displacement_rms_px_search']:.2f} px)")
+    log(f"  tilt_pivot_mm   {twin['tilt_pivot_mm']:.1f} above the dome's centre (grid: " + ", ".join(
+        f"{h:g} mm: offset {o:.2f}, {e:.3f} px" for h, o, e in phys.get("tilt_pivot_scores", [])) + ")")
     log("appearance: " + ", ".join(f"{k} {v:.3g}" for k, v in summary["appearance"]["values"].items()))
     log(f"residuals: train {train_rms:.2f} px, held out {held_rms:.2f} px (pin-tip RMS); wrote {out}")
     if not c["converged"]:

@@ -195,6 +195,29 @@ def test_tilt_moves_the_contact_towards_the_tilt(skin, design):
     assert np.sign(centroid[0]) == np.sign(m[0]) and abs(centroid[0]) > 1.5
 
 
+def test_the_tilt_pivot_sets_how_deep_a_tilted_surface_reaches(skin, design):
+    """Analytic: a surface tilted about the dome's centre of curvature (pivot 0, the default) is tangent to
+    the rest dome at depth 0; tilted about the apex (pivot = dome radius) it passes through the apex pressed
+    in by the depth; in between it reaches pivot x (1 - cos tilt) deeper along its normal. Untilted, the
+    pivot does not matter."""
+    from twin.tactip import TapPose
+
+    params = design.twin_params()
+    assert params["tilt_pivot_mm"] == 0.0
+    R = skin.R
+    tilted = TapPose(0.0, 12.0, -8.0)
+    m, c = skin.plane(tilted, params)
+    sphere = np.array([0.0, 0.0, -R]) + R * m              # the rest dome's point whose normal is m
+    assert m @ sphere == pytest.approx(c, abs=1e-12)
+    d = 2.5
+    m, c_apex = skin.plane(TapPose(d, 12.0, -8.0), {**params, "tilt_pivot_mm": R})
+    assert m @ np.array([0.0, 0.0, -d]) == pytest.approx(c_apex, abs=1e-12)
+    _, c0 = skin.plane(TapPose(d, 12.0, -8.0), params)
+    _, c7 = skin.plane(TapPose(d, 12.0, -8.0), {**params, "tilt_pivot_mm": 7.0})
+    assert c0 - c7 == pytest.approx(7.0 * (1.0 - m[2]), abs=1e-12)
+    assert skin.plane(TapPose(d), params)[1] == skin.plane(TapPose(d), {**params, "tilt_pivot_mm": 15.0})[1]
+
+
 # ----- render and identification ----------------------------------------------------------
 
 def test_rendered_markers_are_detected_where_they_are_projected(design, skin):

@@ -133,6 +133,7 @@ TWIN_KEYS: dict[str, float] = {
     "depth_offset_mm": 0.0,        # tap depth of the labels minus the depth into the undeformed dome
     "tilt_frame_deg": 0.0,         # angle of the robot's tilt axes about the sensor axis
     "tilt_mirror": 0.0,            # 1: the second tilt angle turns the other way
+    "tilt_pivot_mm": 0.0,          # height of the tap's tilt pivot above the dome's centre of curvature
     "pin_rotation": 1.0,           # fraction of the skin normal's rotation the pins' axes follow (0..1)
     "marker_grey": 180.0,          # marker grey level at the image centre
     "marker_shading": 0.0,         # relative marker brightening per squared normalised image radius
