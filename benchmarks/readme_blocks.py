@@ -200,26 +200,33 @@ def _twin_speed(records: Records, source: str) -> str:
         return "met" if all(met) else "**not met**"
 
     dofs = metric("mesh_dofs")
+    mu = metric("friction")
     pen_goal = f"≤ {GOALS['penetration_max_mm']:g} mm"
     rows = [
-        (f"5 mm press to equilibrium (default design, {_fmt(dofs)} dofs), the captured pose solved directly",
-         f"{_value(rec, 'press_s_median')} median; the followed 1 mm/s path {_value(rec, 'followed_press_s')}, "
-         f"its markers within {_value(rec, 'direct_vs_followed_marker_max_mm')} of the direct equilibrium",
+        (f"5 mm press to equilibrium on σ² = 10 mm² (default design, {_fmt(dofs)} dofs, μ = {_fmt(mu)}: the path "
+         "followed to the captured pose)",
+         f"{_value(rec, 'press_s_median')} median",
          f"≤ {GOALS['press_s']:g} s — {verdict(('press_s_median', 'press_s'))}"),
+        ("the same press frictionless: the captured pose solved directly / the followed path",
+         f"{_value(rec, 'frictionless_direct_press_s')} / {_value(rec, 'followed_press_s')}; markers within "
+         f"{_value(rec, 'direct_vs_followed_marker_max_mm')} of each other", "(comparison)"),
         ("rendered stereo frame (flat shading, 640×480 × 2)", f"{_value(rec, 'frame_ms_median')} median",
          f"≤ {GOALS['frame_ms']:g} ms — {verdict(('frame_ms_median', 'frame_ms'))}"),
         ("skin–indenter gap on σ² = 10 mm² (contacting vertices)",
          f"{_value(rec, 'gap_max_mm')} max, {_value(rec, 'gap_rms_mm')} RMS",
          f"≤ {GOALS['gap_max_mm']:g} mm — {verdict(('gap_max_mm', 'gap_max_mm'))}"),
-        ("outer skin inside the indenter, face level (σ² = 10, 5 mm)",
-         f"{_value(rec, 'penetration_max_mm')} (vertices {_value(rec, 'penetration_vertex_max_mm')}); with face "
-         f"contact {_value(rec, 'face_contact_penetration_max_mm')} ({_value(rec, 'face_contact_press_s')})",
-         f"{pen_goal} — {verdict(('penetration_max_mm', 'penetration_max_mm'))} on the default mesh"),
-        ("the same on the σ² = 5/3 tip (5 mm)",
-         f"{_value(rec, 'sharp_penetration_max_mm')} ({_value(rec, 'sharp_press_s')})",
-         f"{pen_goal}, ≤ {GOALS['sharp_press_s']:g} s — "
-         f"{verdict(('sharp_penetration_max_mm', 'penetration_max_mm'), ('sharp_press_s', 'sharp_press_s'))}"),
-        ("5 mm press on the axis contact mesh (0.5 mm core, mirrored split, face contact), σ² = 10 / 5/3",
+        ("default mesh (1.5 mm, vertex contact): outer skin inside the indenter, face level, σ² = 10 / 5/3",
+         f"{_value(rec, 'penetration_max_mm')} (vertices {_value(rec, 'penetration_vertex_max_mm')}) / "
+         f"{_value(rec, 'sharp_penetration_max_mm')}; {_value(rec, 'press_s_median')} / {_value(rec, 'sharp_press_s')}",
+         f"{pen_goal} — {verdict(('penetration_max_mm', 'penetration_max_mm'), ('sharp_penetration_max_mm', 'penetration_max_mm'))}"),
+        ("the same mesh with face contact, σ² = 10 / 5/3",
+         f"{_value(rec, 'face_contact_penetration_max_mm')} / {_value(rec, 'face_contact_sharp_penetration_max_mm')} "
+         f"inside; apex {_value(rec, 'face_contact_apex_beyond_tip_mm')} beyond the σ² = 10 tip; "
+         f"{_value(rec, 'face_contact_press_s')} / {_value(rec, 'face_contact_sharp_press_s')}",
+         f"{pen_goal} — {verdict(('face_contact_penetration_max_mm', 'penetration_max_mm'), ('face_contact_sharp_penetration_max_mm', 'penetration_max_mm'))}; "
+         f"≤ {GOALS['face_contact_press_s']:g} / {GOALS['face_contact_sharp_press_s']:g} s — "
+         f"{verdict(('face_contact_press_s', 'face_contact_press_s'), ('face_contact_sharp_press_s', 'face_contact_sharp_press_s'))}"),
+        ("the axis contact mesh (0.5 mm core, mirrored split, face contact), σ² = 10 / 5/3",
          f"{_value(rec, 'axis_mesh_penetration_max_mm')} / {_value(rec, 'axis_mesh_sharp_penetration_max_mm')} "
          f"inside; apex {_value(rec, 'axis_mesh_apex_beyond_tip_mm')} beyond the σ² = 10 tip; "
          f"{_value(rec, 'axis_mesh_press_s')} / {_value(rec, 'axis_mesh_sharp_press_s')}",

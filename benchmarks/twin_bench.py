@@ -1,8 +1,9 @@
 """The digital twin's own benchmark (``stereotactip bench twin``): seconds per press, milliseconds per stereo
 frame, the skin–indenter gap and face-level penetration, on the default design and the contact meshes
-(wrapped with units and gates by ``benchmarks/experiments/twin.py``). The presses are frictionless (μ = 0): what
-is timed is the direct quasi-static solve against the followed path, which only frictionless contact allows; a
-frictional press follows the path (README "Known limits")."""
+(wrapped with units and gates by ``benchmarks/experiments/twin.py``). The presses are the twin's own: with the
+design's friction (``[twin] friction``), so they follow the path to the captured pose. One frictionless press is
+timed beside them through the direct quasi-static solve, which only frictionless contact allows, and checked
+against the same press along the followed path."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ def _timed_press(design, indenter, mesh, depth_mm: float = 5.0):
     from twin.physics import SkinSim
 
     t0 = time.perf_counter()
-    sim = SkinSim(design, indenter, mesh=mesh, friction=0.0)
+    sim = SkinSim(design, indenter, mesh=mesh)
     (_, stats, truth), = robot.execute(sim, robot.press_motion(depth_mm))
     return time.perf_counter() - t0, stats, truth
 
@@ -38,6 +39,7 @@ N_PRESS = 3                 # default-path presses timed (the first compiles the
 N_FRAMES = 20               # stereo frames timed after one warm-up
 DEPTH_MM = 5.0
 GOALS = {"press_s": 3.0, "sharp_press_s": 6.0, "gap_max_mm": 0.1, "frame_ms": 50.0,
+         "face_contact_press_s": 3.0, "face_contact_sharp_press_s": 6.0,
          "axis_mesh_press_s": 3.0, "axis_mesh_sharp_press_s": 6.0,
          "penetration_max_mm": 0.05}
 
@@ -46,9 +48,9 @@ def run_twin_bench(out_dir, quick: bool = False) -> dict:
     """Twin speed and fidelity: s per 5 mm press, ms per stereo frame, skin–indenter gap (σ²=10 Gaussian).
 
     A press is model set-up (compiled for the first press, copied from the cache after) plus
-    :func:`twin.robot.execute` of a 5 mm press on its default path (the captured pose solved directly,
-    checked). One more press along the followed path is timed for comparison, and the largest marker
-    difference between the two equilibria recorded. Writes ``out_dir/twin.json`` and returns the same
+    :func:`twin.robot.execute` of a 5 mm press with the design's friction (the path followed to the captured
+    pose). The same press frictionless is timed twice for comparison, solved directly at the captured pose and
+    along the followed path, and the largest marker difference between the two equilibria recorded. Writes ``out_dir/twin.json`` and returns the same
     dict. Goals on the 2-core reference machine: press ≤ 3 s with gap ≤ 0.1 mm; ≤ 50 ms per stereo frame.
     """
     from pipeline.design import load_design
@@ -59,7 +61,7 @@ def run_twin_bench(out_dir, quick: bool = False) -> dict:
     ind = make_indenter("gaussian", h_mm=5.0, sigma2_mm2=10.0)
     sharp_ind = make_indenter("gaussian", h_mm=5.0, sigma2_mm2=5.0 / 3.0)
     default = _default_presses(design, ind)
-    followed = _followed_press(design, ind)
+    followed = _frictionless_presses(design, ind)
     result = {**_press_fields(design, default, followed),
               **_contact_mesh_fields(design, ind, sharp_ind),
               "goals": dict(GOALS)}
@@ -90,8 +92,8 @@ class _DefaultPresses(NamedTuple):
 
 
 def _default_presses(design, ind) -> _DefaultPresses:
-    """Press ``ind`` 5 mm into ``design`` :data:`N_PRESS` times on the default path (robot.execute: direct solve at
-    the captured pose, checked, followed path as the fallback), timing model set-up and press."""
+    """Press ``ind`` 5 mm into ``design`` :data:`N_PRESS` times on the default path with the design's friction
+    (robot.execute: the path followed to the captured pose), timing model set-up and press."""
     from tqdm import tqdm
 
     from benchmarks.latency import reference_workload_ms
@@ -102,7 +104,7 @@ def _default_presses(design, ind) -> _DefaultPresses:
     for _ in tqdm(range(N_PRESS), desc="bench twin: presses"):
         ref_ms.append(reference_workload_ms(repeats=5))
         t0 = time.perf_counter()
-        sim = SkinSim(design, ind, friction=0.0)
+        sim = SkinSim(design, ind)
         t1 = time.perf_counter()
         (_, stats, truth), = robot.execute(sim, robot.press_motion(DEPTH_MM))
         press_s.append(time.perf_counter() - t0)
@@ -116,34 +118,46 @@ def _default_presses(design, ind) -> _DefaultPresses:
     return _DefaultPresses(press_s, build_s, settle_steps, converged, direct, cached, gaps, warn, truth, ref_ms)
 
 
-class _FollowedPress(NamedTuple):
-    """One press along the followed path (1 mm/s profile, contact increments, lag limit)."""
+class _FrictionlessPresses(NamedTuple):
+    """The same press frictionless: solved directly at the captured pose, and along the followed path (1 mm/s
+    profile, contact increments, lag limit)."""
 
-    seconds: float
+    direct_s: float
+    direct_truth: object
+    seconds: float          # the followed path
     truth: object
     gaps: np.ndarray
     steps: int
     mesh_dofs: int
 
 
-def _followed_press(design, ind) -> _FollowedPress:
-    """The same press along the followed path, for comparison with the direct solve."""
+def _frictionless_presses(design, ind) -> _FrictionlessPresses:
+    """The press frictionless, solved directly and along the followed path, for comparison."""
     from twin import robot
     from twin.physics import SkinSim
 
     t0 = time.perf_counter()
     sim = SkinSim(design, ind, friction=0.0)
+    (_, _, direct_truth), = robot.execute(sim, robot.press_motion(DEPTH_MM))
+    direct_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sim = SkinSim(design, ind, friction=0.0)
     (_, _, truth), = robot.execute(sim, robot.press_motion(DEPTH_MM), direct=False)
     seconds = time.perf_counter() - t0
-    return _FollowedPress(seconds, truth, sim.gap_mm(), int(sim.steps_taken), int(sim.model.nv))
+    return _FrictionlessPresses(direct_s, direct_truth, seconds, truth, sim.gap_mm(), int(sim.steps_taken),
+                                int(sim.model.nv))
 
 
-def _press_fields(design, default: _DefaultPresses, followed: _FollowedPress) -> dict:
-    """The σ² = 10 press's speed, settle statistics, gap, penetration and direct-vs-followed agreement."""
+def _press_fields(design, default: _DefaultPresses, followed: _FrictionlessPresses) -> dict:
+    """The σ² = 10 press's speed, settle statistics, gap, penetration and the frictionless direct-vs-followed
+    agreement."""
+    from twin.physics import resolve_friction
+
     gaps, f_gaps, val = default.gaps, followed.gaps, default.truth.validity
     return {
         "units": {"press_s": "s", "frame_ms": "ms", "gap": "mm"},
         "design": design.name, "indenter": {"name": "gaussian", "h_mm": 5.0, "sigma2_mm2": 10.0}, "depth_mm": DEPTH_MM,
+        "friction": resolve_friction(design, None),
         "press_s_median": float(np.median(default.press_s)), "press_s_all": default.press_s,
         "press_direct": default.direct, "model_from_cache": default.cached,
         "model_build_s_median": float(np.median(default.build_s)), "model_build_s_all": default.build_s,
@@ -152,10 +166,11 @@ def _press_fields(design, default: _DefaultPresses, followed: _FollowedPress) ->
         "gap_max_mm": float(np.max(np.abs(gaps))) if len(gaps) else float("nan"),
         "gap_rms_mm": float(np.sqrt(np.mean(gaps**2))) if len(gaps) else float("nan"),
         "gap_points": int(len(gaps)), "mujoco_warnings": default.warnings,
+        "frictionless_direct_press_s": followed.direct_s,
         "followed_press_s": followed.seconds, "followed_steps": followed.steps,
         "followed_gap_max_mm": float(np.max(np.abs(f_gaps))) if len(f_gaps) else float("nan"),
         "direct_vs_followed_marker_max_mm": float(np.max(np.linalg.norm(
-            default.truth.marker_xyz_mm - followed.truth.marker_xyz_mm, axis=1))),
+            followed.direct_truth.marker_xyz_mm - followed.truth.marker_xyz_mm, axis=1))),
         "penetration_max_mm": val["penetration_max_mm"], "penetration_p99_mm": val["penetration_p99_mm"],
         "penetration_vertex_max_mm": val["penetration_vertex_max_mm"], "contact_force_n": val["contact_force_n"],
         "physics_valid": bool(val["valid"]), "physics_reasons": val["reasons"],
@@ -163,8 +178,9 @@ def _press_fields(design, default: _DefaultPresses, followed: _FollowedPress) ->
 
 
 def _contact_mesh_fields(design, ind, sharp_ind) -> dict:
-    """The sharpest Gaussian on the default mesh, σ² = 10 with face contact, and both on the axis contact mesh
-    the Gaussian experiment uses: time, penetration, validity, how far the apex stands off the tip."""
+    """The sharpest Gaussian on the default mesh, both Gaussians with face contact on the default mesh and on the
+    axis contact mesh the Gaussian experiment uses: time, penetration, validity, how far the apex stands off the
+    tip (all with the design's friction)."""
     from twin.physics import AXIS_CONTACT_MESH, MeshSpec
 
     # the sharpest Gaussian of the paper (σ² = 5/3 mm², tip radius 0.33 mm): time and physics verdict
@@ -172,6 +188,7 @@ def _contact_mesh_fields(design, ind, sharp_ind) -> dict:
     # the same sigma^2 = 10 press with face contact (twin.contact): penetration vs how far the apex stands off
     fc_s, _, fc_truth = _timed_press(design, ind, MeshSpec(face_contact=True))
     fc_apex_beyond = _apex_beyond_tip_mm(fc_truth, DEPTH_MM)
+    fc_sharp_s, _, fc_sharp_truth = _timed_press(design, sharp_ind, MeshSpec(face_contact=True))
     # the axis contact mesh the Gaussian experiment uses (0.5 mm core + face contact), sigma^2 = 10 and 5/3
     axis = {}
     for tag, a_ind in (("s10", ind), ("s5_3", sharp_ind)):
@@ -185,6 +202,9 @@ def _contact_mesh_fields(design, ind, sharp_ind) -> dict:
         "sharp_penetration_max_mm": s_val["penetration_max_mm"], "sharp_physics_valid": bool(s_val["valid"]),
         "face_contact_press_s": fc_s, "face_contact_penetration_max_mm": fc_truth.validity["penetration_max_mm"],
         "face_contact_apex_beyond_tip_mm": fc_apex_beyond, "face_contact_valid": bool(fc_truth.validity["valid"]),
+        "face_contact_sharp_press_s": fc_sharp_s,
+        "face_contact_sharp_penetration_max_mm": fc_sharp_truth.validity["penetration_max_mm"],
+        "face_contact_sharp_valid": bool(fc_sharp_truth.validity["valid"]),
         "axis_mesh_press_s": axis["s10"]["press_s"], "axis_mesh_penetration_max_mm": axis["s10"]["penetration_max_mm"],
         "axis_mesh_apex_beyond_tip_mm": axis["s10"]["apex_beyond_tip_mm"],
         "axis_mesh_sharp_press_s": axis["s5_3"]["press_s"],

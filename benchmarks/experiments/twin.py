@@ -1,9 +1,11 @@
 """twin: speed and fidelity of the digital twin itself (wraps ``benchmarks.twin_bench.run_twin_bench``).
 
 ``run_twin_bench`` presses a σ² = 10 mm² Gaussian 5 mm into the default sensor three times (MuJoCo
-skin; model compiled for the first press, copied from the per-process cache after; the captured pose
-solved directly) and once along the followed path for comparison, and renders 20 stereo frames of the pressed state; it reports seconds
-per press, milliseconds per stereo frame and the skin-to-indenter gap over the contact points. Its
+skin with the design's friction; model compiled for the first press, copied from the per-process cache after;
+the path followed to the captured pose), the same press frictionless solved directly and along the followed
+path for comparison, both Gaussians (σ² = 10 and 5/3) on the contact meshes, and renders 20 stereo frames of
+the pressed state; it reports seconds per press, milliseconds per stereo frame and the skin-to-indenter gap
+over the contact points. Its
 raw ``twin.json`` is kept in ``OUT/twin_bench/`` (``OUT/twin.json`` is this experiment's record).
 Speed is machine-dependent (2 shared cores here): the CI gate holds the press and frame times in units of a
 fixed reference job timed between them, with only a loose sanity bound on the seconds; the gap is
@@ -28,6 +30,8 @@ from benchmarks.registry import Context, Finding, Result, register
         "gap_rms_mm": "mm",
         "settle_converged_fraction": "1",
         "mesh_dofs": "1",
+        "friction": "1",
+        "frictionless_direct_press_s": "s",
         "followed_press_s": "s",
         "direct_vs_followed_marker_max_mm": "mm",
         "penetration_max_mm": "mm",
@@ -39,6 +43,7 @@ from benchmarks.registry import Context, Finding, Result, register
         "face_contact_press_s": "s",
         "face_contact_penetration_max_mm": "mm",
         "face_contact_apex_beyond_tip_mm": "mm",
+        "face_contact_sharp_press_s": "s", "face_contact_sharp_penetration_max_mm": "mm",
         "axis_mesh_press_s": "s", "axis_mesh_penetration_max_mm": "mm", "axis_mesh_apex_beyond_tip_mm": "mm",
         "axis_mesh_sharp_press_s": "s", "axis_mesh_sharp_penetration_max_mm": "mm",
         "reference_ms_median": "ms", "press_over_reference": "1", "frame_over_reference": "1",
@@ -66,12 +71,15 @@ def run(ctx: Context) -> Result:
     out.metric("gap_rms_mm", raw["gap_rms_mm"], "mm")
     out.metric("settle_converged_fraction", float(np.mean(raw["settle_converged"])), "1")
     out.metric("mesh_dofs", raw["mesh_dofs"], "1")
+    out.metric("friction", raw["friction"], "1")
+    out.metric("frictionless_direct_press_s", raw["frictionless_direct_press_s"], "s")
     out.metric("followed_press_s", raw["followed_press_s"], "s")
     out.metric("direct_vs_followed_marker_max_mm", raw["direct_vs_followed_marker_max_mm"], "mm")
     for k, unit in (("penetration_max_mm", "mm"), ("penetration_p99_mm", "mm"), ("penetration_vertex_max_mm", "mm"),
                     ("contact_force_n", "N"), ("sharp_press_s", "s"), ("sharp_penetration_max_mm", "mm"),
                     ("face_contact_press_s", "s"), ("face_contact_penetration_max_mm", "mm"),
-                    ("face_contact_apex_beyond_tip_mm", "mm"), ("axis_mesh_press_s", "s"),
+                    ("face_contact_apex_beyond_tip_mm", "mm"), ("face_contact_sharp_press_s", "s"),
+                    ("face_contact_sharp_penetration_max_mm", "mm"), ("axis_mesh_press_s", "s"),
                     ("axis_mesh_penetration_max_mm", "mm"), ("axis_mesh_apex_beyond_tip_mm", "mm"),
                     ("axis_mesh_sharp_press_s", "s"), ("axis_mesh_sharp_penetration_max_mm", "mm")):
         out.metric(k, raw[k], unit)
@@ -85,10 +93,11 @@ def run(ctx: Context) -> Result:
                              for p, b, mc, dr, s, c in zip(raw["press_s_all"], raw["model_build_s_all"],
                                                           raw["model_from_cache"], raw["press_direct"],
                                                           raw["settle_steps"], raw["settle_converged"])]
-    out.notes.append(f"Presses solve the captured pose directly (twin.physics.SkinSim.solve_at); one press along "
-                     f"the followed path took {raw['followed_press_s']:.2f} s ({raw['followed_steps']} steps) and its "
-                     f"markers differ from the direct equilibrium by at most "
-                     f"{raw['direct_vs_followed_marker_max_mm']:.4f} mm.")
+    out.notes.append(f"Presses carry the design's friction (μ = {raw['friction']:g}) and follow the path to the "
+                     f"captured pose. Frictionless, the captured pose is solved directly (twin.physics.SkinSim.solve_at) "
+                     f"in {raw['frictionless_direct_press_s']:.2f} s; along the followed path it took "
+                     f"{raw['followed_press_s']:.2f} s ({raw['followed_steps']} steps) and its markers differ from the "
+                     f"direct equilibrium by at most {raw['direct_vs_followed_marker_max_mm']:.4f} mm.")
     goals = raw.get("goals", {})
     out.notes.append(f"Twin goals on the reference machine (benchmarks.twin_bench): press ≤ {goals.get('press_s')} s, "
                      f"gap ≤ {goals.get('gap_max_mm')} mm, ≤ {goals.get('frame_ms')} ms per frame. "
@@ -99,6 +108,10 @@ def run(ctx: Context) -> Result:
                               ("frame_ms", "frame_ms_median", "ms"), ("sharp_press_s", "sharp_press_s", "s"),
                               ("penetration_max_mm", "penetration_max_mm", "mm"),
                               ("penetration_max_mm", "sharp_penetration_max_mm", "mm"),
+                              ("face_contact_press_s", "face_contact_press_s", "s"),
+                              ("face_contact_sharp_press_s", "face_contact_sharp_press_s", "s"),
+                              ("penetration_max_mm", "face_contact_penetration_max_mm", "mm"),
+                              ("penetration_max_mm", "face_contact_sharp_penetration_max_mm", "mm"),
                               ("axis_mesh_press_s", "axis_mesh_press_s", "s"),
                               ("axis_mesh_sharp_press_s", "axis_mesh_sharp_press_s", "s"),
                               ("penetration_max_mm", "axis_mesh_penetration_max_mm", "mm"),
