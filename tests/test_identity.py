@@ -258,6 +258,33 @@ def test_no_wrong_id_in_a_sharply_pressed_dense_view_with_defects():
     assert np.count_nonzero(ids >= 0) >= 198
 
 
+# views a wider local search of the property above found (defect seed, pattern, sigma, lateral, rate);
+# in each, a slot near the tip predicted from one side only (two or three of its six immediate
+# neighbours identified) had its real pin 0.41-0.48 separations off the extrapolated prediction,
+# while another blob stood within 0.15 of it: its inner neighbour's pin (first four) or a spurious
+# blob (the last, the centre slot)
+_EXTRAPOLATED_VIEWS = [(3977083489, "hexagon217_sep180", 2.2163, 0.4401, 0.0151),
+                       (3117160162, "hexagon217_sep180", 2.1723, 0.4092, 0.0329),
+                       (1541645081, "hexagon217_sep180", 2.1557, 0.4466, 0.0248),
+                       (4011403959, "hexagon217_sep180", 2.1010, 0.4359, 0.0215),
+                       (3792783512, "hexagon217_sep180", 1.0712, 0.3201, 0.0525)]
+
+
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate", _EXTRAPOLATED_VIEWS)
+def test_no_wrong_id_where_a_prediction_is_extrapolated_towards_a_press_tip(seed, name, sigma, lateral, rate):
+    """An affine prediction extrapolated across a wide gap errs more the farther the slot lies from
+    its identified neighbours (the press crowds the pins ahead): a free blob within the widened reach
+    competes for the slot, which is then left open rather than given to the wrong blob."""
+    rng = np.random.default_rng(seed)
+    uv = _pressed_view(name, 5.0, sigma, lateral)
+    nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+    assert nn.min() >= 0.5 * np.median(nn)                         # within the property's scope
+    pts, truth, _ = add_defects(uv, rng, missing=rate, spurious=rate, px_per_sep=float(np.median(nn)))
+    ids = code_rings(_blobs(pts), DESIGNS[name]).ids
+    assert _wrong(ids, truth) == 0
+    assert np.count_nonzero(ids >= 0) >= 0.85 * np.count_nonzero(truth >= 0)
+
+
 def test_a_displaced_marker_and_a_free_blob_near_its_prediction_leave_the_slot_open():
     """The leave-one-out test's ratio rule gives a slot to the blob nearest its prediction. With a free
     blob within the growth gate of the prediction, that holds only for a blob that sits where its

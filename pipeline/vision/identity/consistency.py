@@ -10,9 +10,9 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, FAN_QUERY, GATE, GROW_GATE,
-                                                LOCAL_ONLY, MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT,
-                                                SETTLED, STANDS_OUT)
+from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, EXTRAPOLATION_REACH,
+                                                FAN_QUERY, GATE, GROW_GATE, LOCAL_ONLY, MIN_IMMEDIATE, R_AMBIGUOUS,
+                                                R_FEW, R_INCONSISTENT, SETTLED, STANDS_OUT)
 from pipeline.vision.identity.fans import _embedded
 from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
 from pipeline.vision.identity.neighbours import _adj
@@ -98,7 +98,8 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
 
     A blob that passes every test while a free blob (``slot_of`` -1) lies within :data:`GROW_GATE` of
     its prediction is R_AMBIGUOUS when either blob may be the slot's marker: when the neighbourhood
-    has a wide gap (the prediction is extrapolated), or when the blob is displaced from an otherwise
+    has a wide gap (the prediction is extrapolated, and its reach grows by :data:`EXTRAPOLATION_REACH`
+    with the extrapolation), or when the blob is displaced from an otherwise
     affine neighbourhood (farther from its prediction than :data:`SETTLED` and :data:`STANDS_OUT`
     times the largest residual of its immediate neighbours). Decided last, so that a blob failing a
     neighbour's residual stays R_INCONSISTENT, the evidence the anchoring test counts."""
@@ -152,7 +153,17 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
             d2 = math.sqrt(two_d2[1]) / scale
             if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
                 return R_AMBIGUOUS
-            free_near = d2 <= GROW_GATE and slot_of[two[1]] < 0
+            reach = GROW_GATE
+            if n_imm <= n_design - 2:
+                # the prediction is extrapolated from one side of the slot: its error grows with the
+                # offset of the identified immediate neighbours' centroid from the slot
+                cx = 0.0
+                cy = 0.0
+                for k in range(1, n_imm + 1):
+                    cx += xy[slots[k], 0] - ox
+                    cy += xy[slots[k], 1] - oy
+                reach += EXTRAPOLATION_REACH * math.hypot(cx, cy) / (n_imm * pitch)
+            free_near = d2 <= reach and slot_of[two[1]] < 0
             if n_imm <= n_design - 2:
                 # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
                 # to b than CLOSE_BLOB separations leaves open which of the two is the marker

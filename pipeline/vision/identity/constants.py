@@ -32,6 +32,15 @@ STANDS_OUT = 2.0
 #: blob 0.2-0.3 separations from such a marker in a strongly pressed view was nearer the
 #: extrapolated prediction than the marker itself.
 CLOSE_BLOB = 0.4
+#: A prediction extrapolated across a wide gap (two or more immediate design neighbours unidentified)
+#: errs more the farther the slot lies from the centroid of its identified immediate neighbours
+#: (0 for a closed neighbourhood, 2/3 of a separation with three consecutive of six, 0.87 with two):
+#: a free blob competes for the slot within :data:`GROW_GATE` plus this many separations per
+#: separation of that offset. Near the tip of a sharp press (hexagon217_sep180, 5 mm, sigma 1.1-2.2 mm)
+#: the real marker of a slot predicted from its outer side only stood 0.41-0.48 separations off the
+#: prediction, beyond the growth gate, while its inner neighbour's pin (or a spurious blob) stood
+#: within 0.21 and took the id.
+EXTRAPOLATION_REACH = 0.1
 #: Markers of evidence needed to exclude an alternative reading of a patch.
 ANCHOR_EVIDENCE = 2
 #: Largest ratio of the two singular values of a local affine map. Pins crowding on a steep flank
