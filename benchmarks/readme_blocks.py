@@ -17,10 +17,15 @@ patterns,gaussian --quick --calibration estimated --error-sources SOURCE`` runs:
 --against DIR3``). Each block's first line names the results directories it was written from;
 the records behind the README's headline blocks are kept in ``docs/records/`` so that
 ``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
+
+Over ~400 lines on purpose: one renderer per block, each holding the README's wording next to the record
+fields it reads, all sharing the marker, provenance and number helpers above them and registered in one
+table; a reader looking for where a README figure comes from finds every block here.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -192,11 +197,15 @@ def _oracle_vs_estimated(records: Records, source: str, others: list[tuple[str, 
 
 # ----- error-sources: each error source of the estimated calibration alone ------------------------
 
-def _mm(value: Any, unit: str = "", signed: bool = False, digits: int = 3) -> str:
-    """A figure at the block's fixed resolution (µm for mm), "—" when absent or not finite."""
-    if not isinstance(value, (int, float)) or value != value or value in (float("inf"), float("-inf")):
+_ABLATED = ("patterns", "gaussian")     # the experiments an ablation run holds
+
+
+def _fixed(value: Any, unit: str = "", signed: bool = False, digits: int = 3) -> str:
+    """A figure at the block's fixed resolution (3 decimals: µm for mm), "—" when absent or not finite."""
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
         return "—"
-    return f"{value:{'+' if signed else ''}.{digits}f}".replace("-", "−") + ("" if not unit else unit if unit == "°" else f" {unit}")
+    text = f"{value:{'+' if signed else ''}.{digits}f}".replace("-", "−")
+    return text + ("" if not unit else unit if unit == "°" else f" {unit}")
 
 
 def _metric(rec: Mapping[str, Any], name: str) -> Any:
@@ -220,11 +229,17 @@ def _run_sources(recs: Records, where: str) -> tuple[str, ...]:
     return tuple(s for s in SOURCES if s in kept)
 
 
-def _sigma2_text(value: float) -> str:
-    from fractions import Fraction
+def _build_setups(recs: Records) -> list[tuple[str, str, Mapping[str, Any]]]:
+    """(experiment, design, calibration setup) of a run's patterns and gaussian records, design by design."""
+    out = []
+    for e in _ABLATED:
+        designs = recs[e].get("designs_used") or []
+        setups = (recs[e].get("calibration") or {}).get("setups") or []
+        if len(designs) != len(setups):
+            raise ResultsError(f"{e} record: {len(setups)} calibration setups for {len(designs)} designs")
+        out += [(e, d, st) for d, st in zip(designs, setups)]
+    return out
 
-    f = Fraction(value).limit_denominator(12)
-    return f"{f.numerator}/{f.denominator}" if f.denominator > 1 else f"{f.numerator}"
 
 
 def _error_sources(records: Records, source: str, others: list[tuple[str, Records]]) -> str:
@@ -232,97 +247,90 @@ def _error_sources(records: Records, source: str, others: list[tuple[str, Record
     (``bench patterns,gaussian --quick --calibration estimated --error-sources SOURCE``), one column per run in
     the order given, and the builds behind them: each design's drawn stack, chessboard calibration and
     press-fitted index, each taken from the run that kept that source."""
+    from fractions import Fraction
+
     from benchmarks.estimated import SOURCES
 
     runs = []
     for where, recs in [(source, records), *others]:
-        missing = [e for e in ("patterns", "gaussian") if e not in recs]
+        missing = [e for e in _ABLATED if e not in recs]
         if missing:
             raise ResultsError(f"{where}: no {', '.join(missing)} record: the error-sources block is written from "
                                "`stereotactip bench patterns,gaussian --quick --calibration estimated "
                                "--error-sources SOURCE` runs")
-        bad = [e for e in ("patterns", "gaussian") if recs[e].get("status") != "ok"]
+        bad = [e for e in _ABLATED if recs[e].get("status") != "ok"]
         if bad:
             raise ResultsError(f"{where}: the {', '.join(bad)} record did not run to the end (status "
                                f"{recs[bad[0]].get('status')})")
-        kept = _run_sources({e: recs[e] for e in ("patterns", "gaussian")}, where)
-        label = "all sources" if kept == SOURCES else " + ".join(kept) + " only"
-        runs.append((where, recs, kept, label))
-    about = "; ".join(
-        f"{label}: records in `{where}` (commit "
-        f"{', '.join(sorted({str(recs[e].get('commit', 'unknown'))[:10] for e in ('patterns', 'gaussian')}))}, "
-        f"{'quick' if all(recs[e].get('quick') for e in ('patterns', 'gaussian')) else '**not quick**'}, seed "
-        f"{', '.join(sorted({str(recs[e].get('seed')) for e in ('patterns', 'gaussian')}))})"
-        for where, recs, _, label in runs)
+        kept = _run_sources({e: recs[e] for e in _ABLATED}, where)
+        runs.append((where, recs, kept, "all sources" if kept == SOURCES else " + ".join(kept) + " only"))
+
+    def facts(recs: Records, key: str) -> str:
+        return ", ".join(sorted({str(recs[e].get(key, "unknown"))[:10] for e in _ABLATED}))
+
+    about = "; ".join(f"{label}: records in `{where}` (commit {facts(recs, 'commit')}, "
+                      f"{'quick' if all(recs[e].get('quick') for e in _ABLATED) else '**not quick**'}, "
+                      f"seed {facts(recs, 'seed')})" for where, recs, _, label in runs)
 
     def row(what: str, cell: Callable[[Mapping[str, Any], Mapping[str, Any]], str]) -> str:
         return f"| {what} | " + " | ".join(cell(recs["patterns"], recs["gaussian"]) for _, recs, _, _ in runs) + " |"
+
+    def ids(p: Mapping[str, Any]) -> str:
+        correct = _metric(p, "identity_correct_fraction_min")
+        return "all" if correct == 1 else f"{_fixed(100 * correct if correct is not None else None, '%', digits=1)}"
 
     first = runs[0][1]
     lines = ["Estimated-calibration quick runs of `patterns` and `gaussian`, one column per run by the error "
              f"sources it kept (a source left out takes the twin's exact value) — {about}:", "",
              "| metric (quick) | " + " | ".join(label for *_, label in runs) + " |",
              "| --- | " + " | ".join("---" for _ in runs) + " |"]
-    per_pattern = (first["patterns"].get("tables") or {}).get("per_pattern") or []
-    for k, r in enumerate(per_pattern):
+    for k, r in enumerate((first["patterns"].get("tables") or {}).get("per_pattern") or []):
         what = ("patterns: 3-D localisation RMS at rest, " if k == 0 else "patterns: ") + f"{r['design']} (mm)"
-        lines.append(row(what, lambda p, g, kind=r["kind"]: _mm(_metric(p, f"localisation_rms_mm_{kind}"))))
-    lines.append(row("patterns: max error (mm); ids correct", lambda p, g: (
-        f"{_mm(_metric(p, 'localisation_max_mm'))}; "
-        + ("all" if _metric(p, "identity_correct_fraction_min") == 1 else
-           f"{_mm(100 * (_metric(p, 'identity_correct_fraction_min') or float('nan')), '%', digits=1)} (worst)"))))
-    lines.append(row("gaussian: reconstruction vs twin skin RMS (mm)", lambda p, g: _mm(_metric(g, "rms_vs_true_skin_mm"))))
-    lines.append(row("gaussian: vs CAD RMS, physically valid cells (mm)", lambda p, g: _mm(_metric(g, "rms_vs_cad_mm"))))
-    cells = (first["gaussian"].get("tables") or {}).get("cells") or []
+        lines.append(row(what, lambda p, g, kind=r["kind"]: _fixed(_metric(p, f"localisation_rms_mm_{kind}"))))
+    lines.append(row("patterns: max error (mm); ids correct",
+                     lambda p, g: f"{_fixed(_metric(p, 'localisation_max_mm'))}; {ids(p)}"))
+    lines.append(row("gaussian: reconstruction vs twin skin RMS (mm)",
+                     lambda p, g: _fixed(_metric(g, "rms_vs_true_skin_mm"))))
+    lines.append(row("gaussian: vs CAD RMS, physically valid cells (mm)",
+                     lambda p, g: _fixed(_metric(g, "rms_vs_cad_mm"))))
     skins = sorted((int(m.group(1)) / 100, m.group(0)) for m in
-                   (re.fullmatch(r"centre_error_mm_skin(\d{3})", n) for n in first["gaussian"].get("metrics") or {}) if m)
+                   (re.fullmatch(r"centre_error_mm_skin(\d{3})", n) for n in first["gaussian"].get("metrics") or {})
+                   if m)
     if skins:
-        sharpest = min((c["sigma2_mm2"] for c in cells), default=None)
-        tip = f"σ² = {_sigma2_text(sharpest)}" if sharpest is not None else "sharpest σ²"
+        cells = (first["gaussian"].get("tables") or {}).get("cells") or []
+        sharpest = Fraction(min(c["sigma2_mm2"] for c in cells)).limit_denominator(12) if cells else None
+        tip = "the sharpest σ²" if sharpest is None else f"σ² = {sharpest}"
         lines.append(row(f"gaussian: tip error {tip}, skin {' / '.join(f'{t:g}' for t, _ in skins)} mm (mm)",
-                         lambda p, g: " / ".join(_mm(_metric(g, name)) for _, name in skins)))
-    lines.append(row("gaussian: matched fraction min", lambda p, g: _mm(_metric(g, "matched_fraction_min"))))
+                         lambda p, g: " / ".join(_fixed(_metric(g, name)) for _, name in skins)))
+    lines.append(row("gaussian: matched fraction min", lambda p, g: _fixed(_metric(g, "matched_fraction_min"))))
     lines.append(row("gaussian: physically invalid twin cells", lambda p, g: invalid_cells(g)))
 
     # the builds: every run draws the same stack and chessboard poses (seeded by design and seed); each column
     # comes from the first run that kept its source (a run without it records zeros or the exact route)
-    def setups(recs: Records) -> list[tuple[str, str, Mapping[str, Any]]]:
-        out = []
-        for e in ("patterns", "gaussian"):
-            designs = recs[e].get("designs_used") or []
-            sets = (recs[e].get("calibration") or {}).get("setups") or []
-            if len(designs) != len(sets):
-                raise ResultsError(f"{e} record: {len(sets)} calibration setups for {len(designs)} designs")
-            out += [(e, d, st) for d, st in zip(designs, sets)]
-        return out
+    by_source = {s: _build_setups(recs) for s in SOURCES for _, recs, kept, _ in reversed(runs) if s in kept}
+    seeds = ", ".join(sorted({str(recs[e].get("seed")) for _, recs, _, _ in runs for e in _ABLATED}))
+    lines += ["", f"The builds behind them (seed {seeds}; each run draws the same stack and chessboard poses for a "
+              "design, each column is taken from the run that kept its source; the index is fitted from a "
+              "skin-less board press through that run's cameras and stack):", "",
+              "| build | gel thickness | acrylic thickness | gel index built → press-fit | chessboard RMS | "
+              "baseline error | focal error max | rotation error |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for k, (e, d, _) in enumerate(_build_setups(first)):
+        def setup(src: str) -> Mapping[str, Any]:
+            rows = by_source.get(src) or []
+            return rows[k][2] if k < len(rows) and rows[k][:2] == (e, d) else {}
 
-    by_source = {s: setups(recs) for s in SOURCES for _, recs, kept, _ in reversed(runs) if s in kept}
-    builds = [(e, d) for e, d, _ in setups(first)]
-    if by_source:
-        lines += ["", f"The builds behind them (seed {', '.join(sorted({str(r['patterns'].get('seed')) for _, r, _, _ in runs}))}; "
-                  "each run draws the same stack and chessboard poses for a design, each column is taken from the run "
-                  "that kept its source; the index is fitted from a skin-less board press through that run's "
-                  "cameras and stack):", "",
-                  "| build | gel thickness | acrylic thickness | gel index built → press-fit | chessboard RMS | "
-                  "baseline error | focal error max | rotation error |",
-                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-        for k, (e, d) in enumerate(builds):
-            def get(src: str) -> Mapping[str, Any]:
-                rows = by_source.get(src)
-                return rows[k][2] if rows is not None and k < len(rows) and rows[k][:2] == (e, d) else {}
-
-            drawn = get("thickness").get("drawn") or {}
-            idx = get("index")
-            fit = (idx.get("index") or {}).get("n")
-            built = (idx.get("true_stack") or {}).get("gel_n")
-            index = (f"{_mm(built, digits=4)} → {_mm(fit, digits=4)} ({_mm(fit - built, signed=True, digits=4)})"
-                     if fit is not None and built is not None else "—")
-            cal = get("calibration").get("calibration") or {}
-            lines.append(f"| {e}: {d} | {_mm(drawn.get('gel_thickness_mm'), 'mm', signed=True)} | "
-                         f"{_mm(drawn.get('acrylic_thickness_mm'), 'mm', signed=True)} | {index} | "
-                         f"{_mm(cal.get('rms_px'), 'px')} | {_mm(cal.get('baseline_error_mm'), 'mm', signed=True)} | "
-                         f"{_mm(cal.get('focal_error_max_px'), 'px', digits=2)} | "
-                         f"{_mm(cal.get('rotation_error_deg'), '°', digits=3)} |")
+        drawn = setup("thickness").get("drawn") or {}
+        fit = (setup("index").get("index") or {}).get("n")
+        built = (setup("index").get("true_stack") or {}).get("gel_n")
+        index = "—" if fit is None or built is None else \
+            f"{_fixed(built, digits=4)} → {_fixed(fit, digits=4)} ({_fixed(fit - built, signed=True, digits=4)})"
+        cal = setup("calibration").get("calibration") or {}
+        lines.append(f"| {e}: {d} | {_fixed(drawn.get('gel_thickness_mm'), 'mm', signed=True)} | "
+                     f"{_fixed(drawn.get('acrylic_thickness_mm'), 'mm', signed=True)} | {index} | "
+                     f"{_fixed(cal.get('rms_px'), 'px')} | {_fixed(cal.get('baseline_error_mm'), 'mm', signed=True)} | "
+                     f"{_fixed(cal.get('focal_error_max_px'), 'px', digits=2)} | "
+                     f"{_fixed(cal.get('rotation_error_deg'), '°')} |")
     return "\n".join(lines)
 
 
@@ -475,8 +483,8 @@ def render_block(name: str, records: Records, source: str,
                            f"`stereotactip bench {block.experiment}` results directory")
     if len(against) != block.against:
         command = begin_marker(name).split("`")[1]
-        raise ResultsError(f"README block {name}: " + (f"compares {('two', 'three')[block.against - 1]} runs" if block.against else
-                           "is written from one run") + f": `{command}`")
+        runs = f"compares {('two', 'three')[block.against - 1]} runs" if block.against else "is written from one run"
+        raise ResultsError(f"README block {name}: {runs}: `{command}`")
     body = block.body(records, source, list(against)) if block.against else block.body(records, source)
     return "\n".join([begin_marker(name), "", body, "", end_marker(name)])
 
@@ -518,6 +526,7 @@ def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("g
                                f"followed by {end!r}")
         head, rest = text.split(begin, 1)
         _, tail = rest.split(end, 1)
-        text = head + render_block(name, records, str(records_dir), against if name in BLOCKS and BLOCKS[name].against else ()) + tail
+        others = against if name in BLOCKS and BLOCKS[name].against else ()
+        text = head + render_block(name, records, str(records_dir), others) + tail
     atomic_write_text(readme, text)
     return readme
