@@ -6,7 +6,7 @@
                        [--calibration oracle|estimated] [--error-sources calibration,index,thickness]
     stereotactip sweep --experiment NAME --skin 0.5,1.0,1.5 --separation 1.80,2.54,3.54
                        --pattern hexagon,square,circular [--quick] --out DIR [--workers N | --cluster ADDRESS]
-    stereotactip report DIR [--against DIR2] [--readme README.md [--block NAME]...]
+    stereotactip report DIR [--against DIR2]... [--readme README.md [--block NAME]...]
 
 Exit status of ``bench``: 0 when every experiment ran (and, with ``--check``, every guarded
 quick metric is within ``benchmarks/thresholds.toml``), 1 on an experiment error or a regression.
@@ -162,13 +162,14 @@ def _sweep(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     from benchmarks.report import write_report
 
-    path = write_report(Path(args.dir), against=Path(args.against) if args.against else None)
+    against = [Path(d) for d in args.against or ()]
+    path = write_report(Path(args.dir), against=against)
     print(path)
     if args.readme:
         from benchmarks.readme_blocks import update_readme
 
         print(update_readme(Path(args.readme), Path(args.dir), tuple(args.block or ("gate-figures",)),
-                            against_dir=Path(args.against) if args.against else None))
+                            against_dir=against))
     print(path.with_name("report.html"))
     if path.with_name("report.png").is_file():
         print(path.with_name("report.png"))
@@ -212,16 +213,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     r = sub.add_parser("report", help="write DIR/report.md and DIR/report.html from the benchmark results in DIR")
     r.add_argument("dir", metavar="DIR")
-    r.add_argument("--against", metavar="DIR2",
+    r.add_argument("--against", metavar="DIR2", action="append",
                    help="add a side-by-side table of the experiments DIR2 also holds (e.g. an oracle and an "
-                        "estimated run)")
+                        "estimated run); repeatable: one table per directory")
     r.add_argument("--readme", metavar="README.md",
                    help="also rewrite generated blocks of this README from the records in DIR (default: the "
                         "gate-figures block, from the quick records)")
     r.add_argument("--block", action="append", metavar="NAME",
                    help="with --readme: the block to rewrite, e.g. twin-speed from a `bench twin` results "
                         "directory, identification-coverage from a `bench identification` one (repeatable; names "
-                        "in benchmarks/readme_blocks.py); oracle-vs-estimated takes DIR2 from --against")
+                        "in benchmarks/readme_blocks.py); oracle-vs-estimated takes DIR2 from --against, error-sources the "
+                        "index-only and thickness-only runs from two --against (DIR the calibration-only run)")
     r.set_defaults(func=_report)
 
     from benchmarks import cli_terrain

@@ -10,18 +10,26 @@ and :data:`BLOCKS` names what each block is made of: the gate figures of a quick
 metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``quick-experiments``, one row per
 experiment: the paper's figures and claims beside the run's), the twin's speed and fidelity table
 (``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
-from a ``bench identification`` record) and the tracking table (``tracking-identity``, from a ``bench tracking``
-record). Each block's first line names the results directory it was written from;
+from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
+record), an oracle and an estimated quick run side by side (``oracle-vs-estimated``, ``report DIR --against
+DIR2``) and each error source of the estimated calibration alone (``error-sources``, three ``bench
+patterns,gaussian --quick --calibration estimated --error-sources SOURCE`` runs: ``report DIR --against DIR2
+--against DIR3``). Each block's first line names the results directories it was written from;
 the records behind the README's headline blocks are kept in ``docs/records/`` so that
 ``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
+
+Over ~400 lines on purpose: one renderer per block, each holding the README's wording next to the record
+fields it reads, all sharing the marker, provenance and number helpers above them and registered in one
+table; a reader looking for where a README figure comes from finds every block here.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 from benchmarks.report import (_fmt, _md_escape, _verdict, calibration_mode, comparison_table, designs_used,
                                invalid_cells, paper_figures)
@@ -38,19 +46,20 @@ Records = Mapping[str, Mapping[str, Any]]
 class ReadmeBlock:
     """One generated README block: its ``name`` (the marker's), the ``experiment`` whose record it needs (None:
     every quick record in the directory) and ``body(records, source) -> str`` the Markdown between the markers.
-    A block that compares two runs (``against``) is written by ``body(records, source, against_records,
-    against_source)`` from ``report DIR --against DIR2``."""
+    A block that compares runs (``against`` > 0: how many other runs besides DIR) is written by
+    ``body(records, source, others)``, ``others`` the list of (directory, records) from ``report DIR --against
+    DIR2 [--against DIR3]``."""
 
     name: str
     experiment: str | None
     body: Callable[..., str]
     about: str
-    against: bool = False
+    against: int = 0
 
 
 def begin_marker(name: str) -> str:
     """The line that opens block ``name`` (the gate figures keep their original, shorter command)."""
-    against = " --against DIR2" if name in BLOCKS and BLOCKS[name].against else ""
+    against = "".join(f" --against DIR{k + 2}" for k in range(BLOCKS[name].against if name in BLOCKS else 0))
     command = (f"stereotactip report DIR{against} --readme README.md"
                + ("" if name == "gate-figures" else f" --block {name}"))
     return f"<!-- report:{name}:begin (written by `{command}`; do not edit) -->"
@@ -161,9 +170,10 @@ CALIBRATION_METRICS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _oracle_vs_estimated(records: Records, source: str, against: Records, against_source: str) -> str:
+def _oracle_vs_estimated(records: Records, source: str, others: list[tuple[str, Records]]) -> str:
     """The :data:`CALIBRATION_METRICS` of two quick runs side by side (``report DIR --against DIR2``, the report's
     own comparison table): typically DIR run with ``--calibration oracle`` and DIR2 with ``estimated``."""
+    [(against_source, against)] = others
     def run(recs: Records, where: str) -> tuple[str, str]:
         chosen = [r for n, r in sorted(recs.items()) if n in CALIBRATION_METRICS]
         if not chosen:
@@ -183,6 +193,145 @@ def _oracle_vs_estimated(records: Records, source: str, against: Records, agains
         raise ResultsError(f"{source} and {against_source}: no experiment of {', '.join(CALIBRATION_METRICS)} "
                            "ran in both")
     return "\n".join([f"The {about_a} beside the {about_b}:", ""] + table)
+
+
+# ----- error-sources: each error source of the estimated calibration alone ------------------------
+
+_ABLATED = ("patterns", "gaussian")     # the experiments an ablation run holds
+
+
+def _fixed(value: Any, unit: str = "", signed: bool = False, digits: int = 3) -> str:
+    """A figure at the block's fixed resolution (3 decimals: µm for mm), "—" when absent or not finite."""
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
+        return "—"
+    text = f"{value:{'+' if signed else ''}.{digits}f}".replace("-", "−")
+    return text + ("" if not unit else unit if unit == "°" else f" {unit}")
+
+
+def _metric(rec: Mapping[str, Any], name: str) -> Any:
+    return ((rec.get("metrics") or {}).get(name) or {}).get("value")
+
+
+def _run_sources(recs: Records, where: str) -> tuple[str, ...]:
+    """The error sources an estimated run kept (the same for every setup of its records)."""
+    from benchmarks.estimated import SOURCES
+
+    found = set()
+    for name, r in recs.items():
+        cal = r.get("calibration") or {}
+        if cal.get("mode") != "estimated":
+            raise ResultsError(f"{where}: the {name} record ran with calibration {cal.get('mode', 'oracle')}: the "
+                               "error-sources block is written from --calibration estimated runs")
+        found |= {tuple(s.get("sources") or ()) for s in cal.get("setups") or ()}
+    if len(found) != 1:
+        raise ResultsError(f"{where}: the records keep different error sources ({found or 'none recorded'})")
+    (kept,) = found
+    return tuple(s for s in SOURCES if s in kept)
+
+
+def _build_setups(recs: Records) -> list[tuple[str, str, Mapping[str, Any]]]:
+    """(experiment, design, calibration setup) of a run's patterns and gaussian records, design by design."""
+    out = []
+    for e in _ABLATED:
+        designs = recs[e].get("designs_used") or []
+        setups = (recs[e].get("calibration") or {}).get("setups") or []
+        if len(designs) != len(setups):
+            raise ResultsError(f"{e} record: {len(setups)} calibration setups for {len(designs)} designs")
+        out += [(e, d, st) for d, st in zip(designs, setups)]
+    return out
+
+
+
+def _error_sources(records: Records, source: str, others: list[tuple[str, Records]]) -> str:
+    """The ``patterns`` and ``gaussian`` figures of estimated quick runs that each keep some of the error sources
+    (``bench patterns,gaussian --quick --calibration estimated --error-sources SOURCE``), one column per run in
+    the order given, and the builds behind them: each design's drawn stack, chessboard calibration and
+    press-fitted index, each taken from the run that kept that source."""
+    from fractions import Fraction
+
+    from benchmarks.estimated import SOURCES
+
+    runs = []
+    for where, recs in [(source, records), *others]:
+        missing = [e for e in _ABLATED if e not in recs]
+        if missing:
+            raise ResultsError(f"{where}: no {', '.join(missing)} record: the error-sources block is written from "
+                               "`stereotactip bench patterns,gaussian --quick --calibration estimated "
+                               "--error-sources SOURCE` runs")
+        bad = [e for e in _ABLATED if recs[e].get("status") != "ok"]
+        if bad:
+            raise ResultsError(f"{where}: the {', '.join(bad)} record did not run to the end (status "
+                               f"{recs[bad[0]].get('status')})")
+        kept = _run_sources({e: recs[e] for e in _ABLATED}, where)
+        runs.append((where, recs, kept, "all sources" if kept == SOURCES else " + ".join(kept) + " only"))
+
+    def facts(recs: Records, key: str) -> str:
+        return ", ".join(sorted({str(recs[e].get(key, "unknown"))[:10] for e in _ABLATED}))
+
+    about = "; ".join(f"{label}: records in `{where}` (commit {facts(recs, 'commit')}, "
+                      f"{'quick' if all(recs[e].get('quick') for e in _ABLATED) else '**not quick**'}, "
+                      f"seed {facts(recs, 'seed')})" for where, recs, _, label in runs)
+
+    def row(what: str, cell: Callable[[Mapping[str, Any], Mapping[str, Any]], str]) -> str:
+        return f"| {what} | " + " | ".join(cell(recs["patterns"], recs["gaussian"]) for _, recs, _, _ in runs) + " |"
+
+    def ids(p: Mapping[str, Any]) -> str:
+        correct = _metric(p, "identity_correct_fraction_min")
+        return "all" if correct == 1 else f"{_fixed(100 * correct if correct is not None else None, '%', digits=1)}"
+
+    first = runs[0][1]
+    lines = ["Estimated-calibration quick runs of `patterns` and `gaussian`, one column per run by the error "
+             f"sources it kept (a source left out takes the twin's exact value) — {about}:", "",
+             "| metric (quick) | " + " | ".join(label for *_, label in runs) + " |",
+             "| --- | " + " | ".join("---" for _ in runs) + " |"]
+    for k, r in enumerate((first["patterns"].get("tables") or {}).get("per_pattern") or []):
+        what = ("patterns: 3-D localisation RMS at rest, " if k == 0 else "patterns: ") + f"{r['design']} (mm)"
+        lines.append(row(what, lambda p, g, kind=r["kind"]: _fixed(_metric(p, f"localisation_rms_mm_{kind}"))))
+    lines.append(row("patterns: max error (mm); ids correct",
+                     lambda p, g: f"{_fixed(_metric(p, 'localisation_max_mm'))}; {ids(p)}"))
+    lines.append(row("gaussian: reconstruction vs twin skin RMS (mm)",
+                     lambda p, g: _fixed(_metric(g, "rms_vs_true_skin_mm"))))
+    lines.append(row("gaussian: vs CAD RMS, physically valid cells (mm)",
+                     lambda p, g: _fixed(_metric(g, "rms_vs_cad_mm"))))
+    skins = sorted((int(m.group(1)) / 100, m.group(0)) for m in
+                   (re.fullmatch(r"centre_error_mm_skin(\d{3})", n) for n in first["gaussian"].get("metrics") or {})
+                   if m)
+    if skins:
+        cells = (first["gaussian"].get("tables") or {}).get("cells") or []
+        sharpest = Fraction(min(c["sigma2_mm2"] for c in cells)).limit_denominator(12) if cells else None
+        tip = "the sharpest σ²" if sharpest is None else f"σ² = {sharpest}"
+        lines.append(row(f"gaussian: tip error {tip}, skin {' / '.join(f'{t:g}' for t, _ in skins)} mm (mm)",
+                         lambda p, g: " / ".join(_fixed(_metric(g, name)) for _, name in skins)))
+    lines.append(row("gaussian: matched fraction min", lambda p, g: _fixed(_metric(g, "matched_fraction_min"))))
+    lines.append(row("gaussian: physically invalid twin cells", lambda p, g: invalid_cells(g)))
+
+    # the builds: every run draws the same stack and chessboard poses (seeded by design and seed); each column
+    # comes from the first run that kept its source (a run without it records zeros or the exact route)
+    by_source = {s: _build_setups(recs) for s in SOURCES for _, recs, kept, _ in reversed(runs) if s in kept}
+    seeds = ", ".join(sorted({str(recs[e].get("seed")) for _, recs, _, _ in runs for e in _ABLATED}))
+    lines += ["", f"The builds behind them (seed {seeds}; each run draws the same stack and chessboard poses for a "
+              "design, each column is taken from the run that kept its source; the index is fitted from a "
+              "skin-less board press through that run's cameras and stack):", "",
+              "| build | gel thickness | acrylic thickness | gel index built → press-fit | chessboard RMS | "
+              "baseline error | focal error max | rotation error |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for k, (e, d, _) in enumerate(_build_setups(first)):
+        def setup(src: str) -> Mapping[str, Any]:
+            rows = by_source.get(src) or []
+            return rows[k][2] if k < len(rows) and rows[k][:2] == (e, d) else {}
+
+        drawn = setup("thickness").get("drawn") or {}
+        fit = (setup("index").get("index") or {}).get("n")
+        built = (setup("index").get("true_stack") or {}).get("gel_n")
+        index = "—" if fit is None or built is None else \
+            f"{_fixed(built, digits=4)} → {_fixed(fit, digits=4)} ({_fixed(fit - built, signed=True, digits=4)})"
+        cal = setup("calibration").get("calibration") or {}
+        lines.append(f"| {e}: {d} | {_fixed(drawn.get('gel_thickness_mm'), 'mm', signed=True)} | "
+                     f"{_fixed(drawn.get('acrylic_thickness_mm'), 'mm', signed=True)} | {index} | "
+                     f"{_fixed(cal.get('rms_px'), 'px')} | {_fixed(cal.get('baseline_error_mm'), 'mm', signed=True)} | "
+                     f"{_fixed(cal.get('focal_error_max_px'), 'px', digits=2)} | "
+                     f"{_fixed(cal.get('rotation_error_deg'), '°')} |")
+    return "\n".join(lines)
 
 
 # ----- twin-speed: the twin's headline figures ----------------------------------------------------
@@ -312,7 +461,11 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
                 "one row per experiment of a quick run: the paper's figures and claims beside this run's"),
     ReadmeBlock("oracle-vs-estimated", None, _oracle_vs_estimated,
                 "the calibration-sensitive figures of an oracle and an estimated quick run side by side",
-                against=True),
+                against=1),
+    ReadmeBlock("error-sources", None, _error_sources,
+                "patterns and gaussian figures of estimated quick runs that each keep one error source, with "
+                "each run's drawn build, chessboard calibration and press-fitted index",
+                against=2),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
                 "wrong ids and coverage per defect condition and pattern"),
@@ -326,22 +479,20 @@ README_END = end_marker("gate-figures")
 
 
 def render_block(name: str, records: Records, source: str,
-                 against: tuple[str, Records] | None = None) -> str:
-    """Block ``name`` written from ``records`` (the results directory ``source``; for a block that compares two
-    runs, also ``against`` = (directory, records) of the other), marker lines included."""
+                 against: Sequence[tuple[str, Records]] = ()) -> str:
+    """Block ``name`` written from ``records`` (the results directory ``source``; for a block that compares
+    runs, also ``against``, the (directory, records) of each other run), marker lines included."""
     block = BLOCKS.get(name)
     if block is None:
         raise ResultsError(f"README block {name!r}: unknown; known blocks: {', '.join(BLOCKS)}")
     if block.experiment is not None and block.experiment not in records:
         raise ResultsError(f"{source}: no {block.experiment!r} record: the {name} block is written from a "
                            f"`stereotactip bench {block.experiment}` results directory")
-    if block.against:
-        if against is None:
-            raise ResultsError(f"README block {name}: compares two runs: `stereotactip report DIR --against DIR2 "
-                               f"--readme README.md --block {name}`")
-        body = block.body(records, source, against[1], against[0])
-    else:
-        body = block.body(records, source)
+    if len(against) != block.against:
+        command = begin_marker(name).split("`")[1]
+        runs = f"compares {('two', 'three')[block.against - 1]} runs" if block.against else "is written from one run"
+        raise ResultsError(f"README block {name}: {runs}: `{command}`")
+    body = block.body(records, source, list(against)) if block.against else block.body(records, source)
     return "\n".join([begin_marker(name), "", body, "", end_marker(name)])
 
 
@@ -360,10 +511,10 @@ def readme_blocks(text: str) -> dict[str, str]:
 
 
 def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("gate-figures",),
-                  against_dir: Path | None = None) -> Path:
+                  against_dir: Path | Sequence[Path] | None = None) -> Path:
     """Rewrite the named ``blocks`` of ``readme`` from the records in ``records_dir`` (and, for a block that
-    compares two runs, ``against_dir``) atomically; everything else is kept. Each block must stand exactly once,
-    its begin line before its end line."""
+    compares runs, the other runs' directories ``against_dir``) atomically; everything else is kept. Each block
+    must stand exactly once, its begin line before its end line."""
     from pipeline.io.atomic import atomic_write_text
 
     readme = Path(readme)
@@ -372,7 +523,9 @@ def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("g
     except (OSError, UnicodeDecodeError) as exc:
         raise ResultsError(f"README {readme}: unreadable ({type(exc).__name__})") from None
     records = load_records(Path(records_dir))
-    against = None if against_dir is None else (str(against_dir), load_records(Path(against_dir)))
+    against_dirs = [] if against_dir is None else [against_dir] if isinstance(against_dir, (str, Path)) \
+        else list(against_dir)
+    against = [(str(d), load_records(Path(d))) for d in against_dirs]
     for name in blocks:
         begin, end = begin_marker(name), end_marker(name)
         if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
@@ -380,6 +533,7 @@ def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("g
                                f"followed by {end!r}")
         head, rest = text.split(begin, 1)
         _, tail = rest.split(end, 1)
-        text = head + render_block(name, records, str(records_dir), against) + tail
+        others = against if name in BLOCKS and BLOCKS[name].against else ()
+        text = head + render_block(name, records, str(records_dir), others) + tail
     atomic_write_text(readme, text)
     return readme

@@ -13,7 +13,7 @@ import json
 import math
 import sys
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 from benchmarks.results import ResultsError, load_records
 from benchmarks.thresholds import check, load_thresholds
@@ -115,9 +115,9 @@ def calibration_comparison(records: Mapping[str, Mapping[str, Any]], against: Ma
 
 
 def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
-                  against: tuple[str, Mapping[str, Mapping[str, Any]]] | None = None) -> str:
-    """The Markdown text of the report (figure links relative to ``out_dir``); ``against`` = (name, records) of
-    another run (e.g. the other calibration mode) adds a side-by-side table."""
+                  against: Sequence[tuple[str, Mapping[str, Mapping[str, Any]]]] = ()) -> str:
+    """The Markdown text of the report (figure links relative to ``out_dir``); each (name, records) of
+    ``against``, another run (e.g. the other calibration mode), adds a side-by-side table."""
     lines: list[str] = ["# StereoTacTip benchmark report", ""]
     if not records:
         lines += ["No experiment records in this directory.", ""]
@@ -159,8 +159,8 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
             lines.append(f"| {name} | {_md_escape(f['claim'])} | {_md_escape(f['observed'])} | {_verdict(f['agrees'])} |")
     lines.append("")
 
-    if against is not None:
-        lines += calibration_comparison(recs, against[1], against[0])
+    for other_name, other_records in against:
+        lines += calibration_comparison(recs, other_records, other_name)
 
     quick_recs = {n: r for n, r in recs.items() if r.get("quick")}
     if quick_recs:
@@ -211,9 +211,10 @@ def render_report(records: Mapping[str, Mapping[str, Any]], out_dir: Path,
     return "\n".join(lines) + "\n"
 
 
-def write_report(out_dir: Path, screenshot: bool = True, against: Path | None = None) -> Path:
+def write_report(out_dir: Path, screenshot: bool = True, against: Path | Sequence[Path] | None = None) -> Path:
     """Write ``out_dir/report.md`` and ``out_dir/report.html`` (:mod:`benchmarks.report_html`: the same
-    content with the sweeps' trade-off plots) from the records there; returns the Markdown path.
+    content with the sweeps' trade-off plots) from the records there; returns the Markdown path. Each
+    directory of ``against`` adds a side-by-side table of the experiments it shares with ``out_dir``.
 
     With ``screenshot`` and a Chromium on this machine, ``out_dir/report.png`` is the page as headless
     Chromium paints it; otherwise an older ``report.png`` is removed rather than left to disagree."""
@@ -227,13 +228,13 @@ def write_report(out_dir: Path, screenshot: bool = True, against: Path | None = 
 
     from benchmarks.report_html import render_html
 
-    other = None
-    if against is not None:
-        other_records = load_records(Path(against))
+    others = []
+    for other_dir in [] if against is None else [against] if isinstance(against, (str, Path)) else against:
+        other_records = load_records(Path(other_dir))
         if not other_records:
-            raise ResultsError(f"results directory {against}: no experiment JSON records to compare with")
-        other = (str(against), other_records)
-    atomic_write_text(path, render_report(records, out_dir, against=other))
+            raise ResultsError(f"results directory {other_dir}: no experiment JSON records to compare with")
+        others.append((str(other_dir), other_records))
+    atomic_write_text(path, render_report(records, out_dir, against=others))
     html_path = atomic_write_text(out_dir / "report.html", render_html(records, out_dir))
     png, shot = out_dir / "report.png", None
     if screenshot:

@@ -507,15 +507,16 @@ def test_readme_shows_every_metric_the_ci_gate_guards():
 
 def test_readme_headline_blocks_match_the_records_they_were_written_from():
     """The README's headline tables (the quick run's gate figures and experiments, twin speed, identification
-    coverage, tracking) are generated blocks: each is written again from the records it names (kept in docs/records/) and must equal
-    the README's text, so a hand edit of a figure, or a record replaced without rerunning
-    `stereotactip report DIR --readme README.md --block NAME`, fails here."""
+    coverage, tracking, oracle vs estimated, each error source alone) are generated blocks: each is written again
+    from the records it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
+    figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
+    fails here."""
     from benchmarks.readme_blocks import BLOCKS, readme_blocks, render_block
 
     root = Path(__file__).resolve().parents[1]
     blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
-            "quick-experiments", "oracle-vs-estimated"} <= set(blocks)
+            "quick-experiments", "oracle-vs-estimated", "error-sources"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # the quick run's gate figures, from the same kept records
             source, *other = re.findall(r"figures from `([^`]+)`", text)
@@ -523,8 +524,9 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
             source, *other = re.findall(r" records? in `([^`]+)`", text)     # a block of two runs names both
         for where in (source, *other):
             assert where.startswith("docs/records/"), f"README block {name}: {where} is not kept in docs/records/"
-        against = (other[0], res.load_records(root / other[0])) if BLOCKS[name].against else None
-        command = f"{source} --against {other[0]}" if against else source
+        assert len(other) == BLOCKS[name].against, f"README block {name} names {1 + len(other)} runs"
+        against = [(d, res.load_records(root / d)) for d in other]
+        command = source + "".join(f" --against {d}" for d in other)
         assert render_block(name, res.load_records(root / source), source, against) == text, (
             f"README block {name} differs from its records: rerun `stereotactip report {command} "
             f"--readme README.md --block {name}`")
@@ -565,7 +567,7 @@ def test_readme_block_of_two_runs_needs_the_other_run(tmp_path):
     records = res.load_records(root / source)
     with pytest.raises(res.ResultsError, match="--against DIR2"):
         render_block("oracle-vs-estimated", records, source)
-    text = render_block("oracle-vs-estimated", records, source, (source, records))
+    text = render_block("oracle-vs-estimated", records, source, [(source, records)])
     rows = [line.split("|")[1:-1] for line in text.splitlines() if line.startswith("| ") and "**" not in line]
     metrics = {(c[0].strip(), c[1].strip()) for c in rows[2:]}
     assert metrics <= {(e, m) for e, ms in CALIBRATION_METRICS.items() for m in ms} and len(metrics) > 10
@@ -581,6 +583,44 @@ def test_readme_block_of_two_runs_needs_the_other_run(tmp_path):
     assert main(["report", str(run), "--against", str(run), "--readme", str(readme),
                  "--block", "oracle-vs-estimated"]) == 0
     assert "| **patterns** | | estimated quick | estimated quick | | |" in readme.read_text()
+
+
+def test_error_sources_block_is_written_from_three_ablation_runs(tmp_path):
+    """The error-sources block takes DIR and two `--against` directories, one column per run in that order,
+    labelled by the error source each run kept; a figure changed in one run's record shows in that run's column
+    (the README cannot keep a figure its records do not hold); fewer runs, or an oracle run, are clear errors.
+    `report` writes one side-by-side table per `--against` directory."""
+    from benchmarks.readme_blocks import begin_marker, end_marker, render_block
+
+    root = Path(__file__).resolve().parents[1]
+    runs = {}
+    for src in ("calibration", "index", "thickness"):
+        runs[src] = tmp_path / src          # the report pages are written beside the records: copies keep docs/ clean
+        runs[src].mkdir()
+        for name in ("patterns", "gaussian"):
+            (runs[src] / f"{name}.json").write_bytes(
+                (root / f"docs/records/ablation-{src}/{name}.json").read_bytes())
+    rec = json.loads((runs["thickness"] / "patterns.json").read_text())
+    rec["metrics"]["localisation_rms_mm_hexagon"]["value"] = 9.876
+    (runs["thickness"] / "patterns.json").write_text(json.dumps(rec))
+    recs = {k: res.load_records(d) for k, d in runs.items()}
+    text = render_block("error-sources", recs["index"], "i", [("t", recs["thickness"]), ("c", recs["calibration"])])
+    lines = text.splitlines()
+    assert "| metric (quick) | index only | thickness only | calibration only |" in lines
+    row = next(line for line in lines if line.startswith("| patterns: hexagon127 (mm) |"))
+    assert [c.strip() for c in row.split("|")[1:-1]][2] == "9.876"
+    assert sum(line.startswith("| gaussian: hexagon127_skin") for line in lines) == 2
+    with pytest.raises(res.ResultsError, match="compares three runs"):
+        render_block("error-sources", recs["index"], "i", [("t", recs["thickness"])])
+    oracle = res.load_records(root / "docs/records/oracle-vs-estimated")
+    with pytest.raises(res.ResultsError, match="calibration oracle"):
+        render_block("error-sources", oracle, "o", [("t", recs["thickness"]), ("c", recs["calibration"])])
+    readme = tmp_path / "README.md"
+    readme.write_text(f"{begin_marker('error-sources')}\n{end_marker('error-sources')}\n")
+    assert main(["report", str(runs["calibration"]), "--against", str(runs["index"]), "--against",
+                 str(runs["thickness"]), "--readme", str(readme), "--block", "error-sources"]) == 0
+    assert "| metric (quick) | calibration only | index only | thickness only |" in readme.read_text()
+    assert (runs["calibration"] / "report.md").read_text().count("## Side by side") == 2
 
 
 def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy, tmp_path, monkeypatch):
