@@ -5,7 +5,8 @@ built-in marker pattern: random missing and spurious blobs (spurious ones also r
 markers), a contiguous occluded patch, centre jitter up to 0.3 separations, in-plane rotation up
 to +-30 deg, and stereo pairs of analytic presses with different defects in each view. The
 generators are the identification benchmark's (benchmarks/experiments/identification.py), so the
-tests and the benchmark's figures speak of the same trials.
+tests and the benchmark's figures speak of the same trials. Over ~400 lines on purpose: the property
+tests and the falsifying views they once drew (kept as regular tests) share the view generators here.
 """
 
 import numpy as np
