@@ -286,6 +286,30 @@ def test_no_wrong_id_where_a_prediction_is_extrapolated_towards_a_press_tip(seed
     assert np.count_nonzero(ids >= 0) >= 0.85 * np.count_nonzero(truth >= 0)
 
 
+# views the same search found (defect seed, pattern, sigma, lateral, rate): at the tip of the press a
+# spurious blob stood 0.04 separations from the deepest slot's prediction (slot 120, then 116; seven
+# or eight of its eight immediate neighbours identified, their largest residual 0.07, then 0.29)
+# while the slot's pin, displaced 0.28-0.30 separations by its extra depth, was free
+_DISPLACED_TIP_VIEWS = [
+    (3956665288, "square121", 1.4587250402798522, 0.009258003440031425, 0.08156003854850498),
+    (3332246714, "square121", 1.4661746013689307, 0.3730787191385763, 0.06325229000972109)]
+
+
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate", _DISPLACED_TIP_VIEWS)
+def test_no_wrong_id_where_a_press_tip_displaces_its_pin_off_its_prediction(seed, name, sigma, lateral, rate):
+    """A free blob no farther from a slot's prediction than the bend its neighbours' residuals show
+    may displace the slot's pin competes with a blob sitting on the prediction: the slot is left
+    open rather than given to the spurious blob."""
+    rng = np.random.default_rng(seed)
+    uv = _pressed_view(name, 5.0, sigma, lateral)
+    nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+    assert nn.min() >= 0.5 * np.median(nn)                         # within the property's scope
+    pts, truth, _ = add_defects(uv, rng, missing=rate, spurious=rate, px_per_sep=float(np.median(nn)))
+    ids = code_rings(_blobs(pts), DESIGNS[name]).ids
+    assert _wrong(ids, truth) == 0
+    assert np.count_nonzero(ids >= 0) >= 0.85 * np.count_nonzero(truth >= 0)
+
+
 def test_a_displaced_marker_and_a_free_blob_near_its_prediction_leave_the_slot_open():
     """The leave-one-out test's ratio rule gives a slot to the blob nearest its prediction. With a free
     blob within the growth gate of the prediction, that holds only for a blob that sits where its

@@ -10,9 +10,10 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, EXTRAPOLATION_REACH,
-                                                FAN_QUERY, GATE, GROW_GATE, LOCAL_ONLY, MIN_IMMEDIATE, R_AMBIGUOUS,
-                                                R_FEW, R_INCONSISTENT, SETTLED, STANDS_OUT)
+from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, CLOSE_BLOB, DISPLACED_REACH,
+                                                EXTRAPOLATION_REACH, FAN_QUERY, GATE, GROW_GATE, LOCAL_ONLY,
+                                                MIN_IMMEDIATE, R_AMBIGUOUS, R_FEW, R_INCONSISTENT, SETTLED,
+                                                STANDS_OUT)
 from pipeline.vision.identity.fans import _embedded
 from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
 from pipeline.vision.identity.neighbours import _adj
@@ -101,8 +102,10 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
     has a wide gap (the prediction is extrapolated, and its reach grows by :data:`EXTRAPOLATION_REACH`
     with the extrapolation), or when the blob is displaced from an otherwise
     affine neighbourhood (farther from its prediction than :data:`SETTLED` and :data:`STANDS_OUT`
-    times the largest residual of its immediate neighbours). Decided last, so that a blob failing a
-    neighbour's residual stays R_INCONSISTENT, the evidence the anchoring test counts."""
+    times the largest residual of its immediate neighbours), or when the free blob is no farther off
+    than a bend of that neighbourhood may displace the slot's own pin (:data:`DISPLACED_REACH` times
+    that residual). Decided last, so that a blob failing a neighbour's residual stays
+    R_INCONSISTENT, the evidence the anchoring test counts."""
     n_design = _row_length(nbr, s)
     slots[0] = s
     blobs[0] = b
@@ -119,6 +122,7 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
     # the whole design neighbourhood identified: the design half of each fit is tabulated
     whole = n_imm == n_design and m == loo_m[s]
     d1 = 0.0
+    d_free = 0.0                            # the second-nearest blob's distance from the prediction
     free_near = False
     r_max = 0.0                             # largest residual of an immediate neighbour
     _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc)
@@ -164,13 +168,15 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
                     cy += xy[slots[k], 1] - oy
                 reach += EXTRAPOLATION_REACH * math.hypot(cx, cy) / (n_imm * pitch)
             free_near = d2 <= reach and slot_of[two[1]] < 0
+            d_free = d2
             if n_imm <= n_design - 2:
                 # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
                 # to b than CLOSE_BLOB separations leaves open which of the two is the marker
                 _search(pts, pts[b, 0], pts[b, 1], two, two_d2, by_y, ys, sweep)
                 if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
                     return R_AMBIGUOUS
-    if free_near and (n_imm <= n_design - 2 or d1 > max(SETTLED, STANDS_OUT * r_max)):
+    if free_near and (n_imm <= n_design - 2 or d1 > max(SETTLED, STANDS_OUT * r_max)
+                      or d_free <= DISPLACED_REACH * r_max):
         return R_AMBIGUOUS
     return 0
 

@@ -27,6 +27,15 @@ AMBIGUITY_MARGIN = 0.15
 SETTLED = 0.075
 #: See :data:`SETTLED`: twice the largest leave-one-out residual of the immediate neighbours.
 STANDS_OUT = 2.0
+#: ... and, the other way round, a free blob within this many times that largest residual of the
+#: prediction (and within :data:`GROW_GATE`) is as good a reading of the slot as a labelled blob
+#: sitting on the prediction: the bend that shows in the neighbours' residuals displaces the slot's
+#: own pin more, the deepest pin of a sharp press most. At the tip of a 5 mm press of a sigma 1.46 mm
+#: Gaussian (square121) the deepest pin stood 0.28-0.30 separations off its neighbours' affine
+#: prediction, up to 4.3 times their largest residual, while a spurious blob within 0.04 of the
+#: prediction took its id. Larger factors reach the residuals that detector jitter alone leaves
+#: (8 cost 1.3 points of coverage with 10 % missing and spurious blobs; 5 cost 0.2).
+DISPLACED_REACH = 5.0
 #: A marker with two or more unidentified design neighbours (its prediction is extrapolated across
 #: the gap) is ambiguous when another blob lies within this many local separations of it: a spurious
 #: blob 0.2-0.3 separations from such a marker in a strongly pressed view was nearer the
