@@ -284,8 +284,6 @@ _EXTRAPOLATED_VIEWS = [(3977083489, "hexagon217_sep180", 2.2163, 0.4401, 0.0151)
                        (3792783512, "hexagon217_sep180", 1.0712, 0.3201, 0.0525)]
 
 
-@pytest.mark.xfail(strict=True, reason="known wrong ids: the extrapolation reach that withdraws these views "
-                   "(EXTRAPOLATION_REACH = 0.1) made a pressed circular217 stereo view read shifted, so it is off")
 @pytest.mark.parametrize("seed, name, sigma, lateral, rate", _EXTRAPOLATED_VIEWS)
 def test_no_wrong_id_where_a_prediction_is_extrapolated_towards_a_press_tip(seed, name, sigma, lateral, rate):
     """An affine prediction extrapolated across a wide gap errs more the farther the slot lies from

@@ -69,8 +69,12 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
         elif e == _NEED_SEARCH:
             st = _NEED_SEARCH
         else:
+            # the extrapolation reach only where a design fan backs the slot's reading: a pattern
+            # without fans (circular) has nothing else to stop a reading shifted by a marker once
+            # the competed slots are withdrawn
+            ext = EXTRAPOLATION_REACH if fan[s, 0] >= 0 else 0.0
             st = _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate,
-                             slots, blobs, acc, two, two_d2, K, by_y, ys, sweep)
+                             slots, blobs, acc, two, two_d2, K, by_y, ys, sweep, ext)
         status[b] = st
         if st == R_INCONSISTENT:
             n_bad += 1
@@ -90,7 +94,7 @@ def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
 
 @numba.njit(cache=True)
 def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc,
-                two, two_d2, K, by_y, ys, sweep):
+                two, two_d2, K, by_y, ys, sweep, extrapolation):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
 
     The immediate design neighbours ``nbr[s]`` are the first entries of ``nbr2[s]`` (both sorted
@@ -99,12 +103,12 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
 
     A blob that passes every test while a free blob (``slot_of`` -1) lies within :data:`GROW_GATE` of
     its prediction is R_AMBIGUOUS when either blob may be the slot's marker: when the neighbourhood
-    has a wide gap (the prediction is extrapolated, and its reach grows by :data:`EXTRAPOLATION_REACH`
-    with the extrapolation), or when the blob is displaced from an otherwise
-    affine neighbourhood (farther from its prediction than :data:`SETTLED` and :data:`STANDS_OUT`
-    times the largest residual of its immediate neighbours), or when the free blob is no farther off
-    than a bend of that neighbourhood may displace the slot's own pin (:data:`DISPLACED_REACH` times
-    that residual). Decided last, so that a blob failing a neighbour's residual stays
+    has a wide gap (the prediction is extrapolated, and its reach grows with the extrapolation by
+    ``extrapolation``: :data:`EXTRAPOLATION_REACH` where the slot has a design fan, else 0), or when
+    the blob is displaced from an otherwise affine neighbourhood (farther from its prediction than
+    :data:`SETTLED` and :data:`STANDS_OUT` times the largest residual of its immediate neighbours),
+    or when the free blob is no farther off than a bend of that neighbourhood may displace the slot's
+    own pin (:data:`DISPLACED_REACH` times that residual). Decided last, so that a blob failing a neighbour's residual stays
     R_INCONSISTENT, the evidence the anchoring test counts."""
     n_design = _row_length(nbr, s)
     slots[0] = s
@@ -166,7 +170,7 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
                 for k in range(1, n_imm + 1):
                     cx += xy[slots[k], 0] - ox
                     cy += xy[slots[k], 1] - oy
-                reach += EXTRAPOLATION_REACH * math.hypot(cx, cy) / (n_imm * pitch)
+                reach += extrapolation * math.hypot(cx, cy) / (n_imm * pitch)
             free_near = d2 <= reach and slot_of[two[1]] < 0
             d_free = d2
             if n_imm <= n_design - 2:

@@ -48,11 +48,12 @@ CLOSE_BLOB = 0.4
 #: separation of that offset. Near the tip of a sharp press (hexagon217_sep180, 5 mm, sigma 1.1-2.2 mm)
 #: the real marker of a slot predicted from its outer side only stood 0.41-0.48 separations off the
 #: prediction, beyond the growth gate, while its inner neighbour's pin (or a spurious blob) stood
-#: within 0.21 and took the id. 0.1 withdrew those five views, but it is off (0.0, the growth gate
-#: alone): in the full identification benchmark one pressed circular217_dome stereo trial was then
-#: read shifted by a marker, 149 wrong ids (circular patterns have no fans, and withdrawing those
-#: slots left the shifted reading certified); with 0.0 that condition has 0 wrong ids.
-EXTRAPOLATION_REACH = 0.0
+#: within 0.21 and took the id; 0.1 withdraws those five views. It applies only to slots with a design
+#: fan (hexagonal and square patterns), whose intact fans still check the reading once competed slots
+#: are withdrawn: applied to a circular pattern (no fans), one pressed circular217_dome stereo trial
+#: of the full identification benchmark was read shifted by a marker (149 wrong ids), as withdrawing
+#: its competed slots left the shifted reading certified; without the reach that trial has none.
+EXTRAPOLATION_REACH = 0.1
 #: Markers of evidence needed to exclude an alternative reading of a patch.
 ANCHOR_EVIDENCE = 2
 #: Largest ratio of the two singular values of a local affine map. Pins crowding on a steep flank
