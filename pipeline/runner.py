@@ -14,7 +14,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
-from pipeline.geometry.refraction import correct_exact, correct_linear
+from pipeline.geometry.refraction import RefractionError, correct_exact, correct_linear, project_through_stack
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
 from pipeline.threads import one_thread
 from pipeline.geometry.triangulation import matched_rays, triangulate
@@ -32,6 +32,10 @@ STEREO_GATE_MM = 0.15
 #: ... and the triangulated marker lies in the gel: between the gel/acrylic interface and this far
 #: (mm) beyond its rest depth (the skin bulges outward only slightly beside an indentation).
 STEREO_BULGE_MM = 1.0
+#: A first frame read from the rest pattern (see :class:`pipeline.vision.dtrc.DTRCTracker`) keeps no
+#: pair when the stereo check rejects more than this fraction of its pairs (a right calibration's
+#: rest pattern leaves none rejected on the twin's frames).
+REST_DOUBT = 0.1
 
 
 class RunnerError(UserError, ValueError):
@@ -105,6 +109,17 @@ class FrameResult:
         return dict(kinds.most_common())
 
 
+def _rest_px(design: SensorDesign, calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the calibration puts every marker of the undeformed skin in each view (px): the rest
+    pattern DTRC falls back on to anchor a first frame's reading (:class:`pipeline.vision.dtrc.DTRCTracker`);
+    None when the markers cannot be projected."""
+    try:
+        left, right = project_through_stack(design.rest_markers_mm(), calib, design)
+    except RefractionError:
+        return None
+    return (left, right) if np.all(np.isfinite(left)) and np.all(np.isfinite(right)) else None
+
+
 def _empty_cloud() -> MarkerCloud:
     return MarkerCloud(np.empty(0, np.int64), np.empty((0, 3)))
 
@@ -153,7 +168,8 @@ class Reconstructor:
         self._detection_params = detection_params if detection_params is not None else detection.DetectionParams()
         self._narrow = detection_params is None       # narrow the scales once the marker size is known
         self._match_stereo = dtrc.match_stereo
-        self._tracker = dtrc.DTRCTracker(design) if tracker == "dtrc" else dtrc.NearestNeighbourTracker(design)
+        self._tracker = (dtrc.DTRCTracker(design, rest=_rest_px(design, calib)) if tracker == "dtrc"
+                         else dtrc.NearestNeighbourTracker(design))
         self.with_height_map = with_height_map
         self.height_map_step_mm = height_map_step_mm
         self._all_ids = np.arange(design.marker_count, dtype=np.int64)
@@ -194,6 +210,14 @@ class Reconstructor:
             int(i): (f"stereo check: the two views' rays miss by {g:.2f} mm (gate {STEREO_GATE_MM} mm)"
                      if g > STEREO_GATE_MM else f"stereo check: triangulated depth z = {zz:.2f} mm is outside the gel")
             for i, g, zz in zip(cloud.ids[~ok].tolist(), gap[~ok].tolist(), z[~ok].tolist())}
+        if getattr(self._tracker, "read_from_rest", False) and np.count_nonzero(~ok) > REST_DOUBT * len(ok):
+            # a view read from the rest pattern trusts the calibration to place the markers: views
+            # that disagree this often say it does not (a rest pattern off by a whole separation
+            # reads every marker as its neighbour), so none of the frame's pairs is kept
+            why = (f"stereo check: read from the rest pattern, the views disagree on {np.count_nonzero(~ok)} of "
+                   f"{len(ok)} pairs: the calibration does not place the markers where they are")
+            self._stereo_reasons = {int(i): why for i in cloud.ids.tolist()}
+            ok[:] = False
         kept_cloud = cloud if ok.all() else MarkerCloud(cloud.ids[ok], cloud.xyz_mm[ok])
         good = np.isin(matches.ids, kept_cloud.ids)
         if good.all():

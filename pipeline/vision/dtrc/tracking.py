@@ -16,6 +16,11 @@ from pipeline.vision.dtrc.coding import RingCoding, code_rings
 from pipeline.vision.dtrc.ring_codes import _marker_count
 from pipeline.vision.identity.reacquire import REACQUIRE_FRAMES
 
+#: A first frame's view is coded again from the rest pattern when ring coding identifies fewer than
+#: this fraction of its blobs (the lattice registration's threshold, ``SEED_BELOW``), and the rest
+#: pattern's reading is taken only when it identifies at least this fraction.
+REST_BELOW = 0.9
+
 
 # ----- stereo matching and tracking ---------------------------------------------------------
 
@@ -67,12 +72,30 @@ class DTRCTracker:
 
     ``update(left, right) -> MarkerMatches`` (also callable). ``last_codings`` holds the two
     :class:`RingCoding` of the latest frame.
+
+    ``rest`` (left_px (N, 2), right_px (N, 2)), optional: where the calibration puts every marker of
+    the undeformed skin in each view. A view of a sequence's first frame (or the first after
+    :meth:`reset`) whose ring coding alone leaves more than a tenth of its blobs unidentified is coded
+    again with the rest pattern as its previous frame: a patch whose reading the design alone cannot
+    anchor (half the pattern hidden: the same patch read one lattice step towards the hidden side
+    fits the design as well) is then followed from rest, under the frame-to-frame map's own tests,
+    which refuse a marker farther from its neighbours' motion than a fifth of a spacing. The rest
+    pattern thus fixes a reading by absolute position, which holds as long as the calibration puts
+    the markers within a fraction of a separation of where they are (it has to for triangulation).
     """
 
-    def __init__(self, design: SensorDesign, *, temporal: bool = True) -> None:
+    def __init__(self, design: SensorDesign, *, temporal: bool = True,
+                 rest: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.design = design
         self.temporal = temporal
+        self.rest = None
+        if rest is not None:
+            ids = np.arange(_marker_count(design), dtype=np.int64)
+            self.rest = [(np.asarray(r, np.float64).reshape(-1, 2), ids) for r in rest]
+            if any(len(xy) != len(ids) for xy, _ in self.rest):
+                raise ValueError(f"DTRCTracker: rest positions must give all {len(ids)} markers in each view")
         self.last_codings: tuple[RingCoding, RingCoding] | None = None
+        self.read_from_rest = False       # whether the latest frame's ids came from the rest pattern
         self._previous: list | None = None
         self._before: list | None = None
         self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
@@ -85,6 +108,11 @@ class DTRCTracker:
             hist = [[frame[v] for frame in [self._before, *self._older]] for v in (0, 1)]
         lc = code_rings(left, self.design, previous=None if prev is None else prev[0], history=hist[0])
         rc = code_rings(right, self.design, previous=None if prev is None else prev[1], history=hist[1])
+        self.read_from_rest = False
+        if prev is None and self.rest is not None:
+            lc2, rc2 = (self._from_rest(b, c, v) for v, (b, c) in enumerate(((left, lc), (right, rc))))
+            self.read_from_rest = lc2 is not lc or rc2 is not rc
+            lc, rc = lc2, rc2
         self.last_codings = (lc, rc)
         if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
             self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
@@ -93,6 +121,19 @@ class DTRCTracker:
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     __call__ = update
+
+    def _from_rest(self, blobs: Blobs, coding: RingCoding, view: int) -> RingCoding:
+        """A first frame's coding of one view, coded again from the rest pattern when ring coding left
+        more than a tenth of the blobs (or slots) unidentified. The rest pattern's reading is taken
+        only when it explains the view, identifying all but a tenth of the blobs (or slots): a
+        calibration off by nearly a whole separation follows a few markers to their neighbours'
+        blobs and leaves the rest unexplained (measured: 24 of 67 blobs followed, all wrong, with
+        the rest pattern 0.9 separations off), a right one follows all but those it cannot see."""
+        n = min(len(blobs), _marker_count(self.design))
+        if n < 4 or np.count_nonzero(coding.ids >= 0) >= REST_BELOW * n:
+            return coding
+        again = code_rings(blobs, self.design, previous=self.rest[view])
+        return again if np.count_nonzero(again.ids >= 0) >= REST_BELOW * n else coding
 
     def forget(self, ids: np.ndarray) -> None:
         """Drop ``ids`` from the markers the next frame is given as certain in the previous one: a
