@@ -166,12 +166,20 @@ def _mean(valid_rows: list[dict], key: str, **sel) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
+def _max(rows: list[dict], key: str, **sel) -> float:
+    """Largest finite ``key`` over the cells matching ``sel``; NaN when none has one (every press of an ω can fail:
+    a skin mesh that folds leaves its cells out of ``rows``, or its penetration unmeasured)."""
+    v = np.array([r[key] for r in rows if all(r[a] == b for a, b in sel.items())], dtype=float)
+    v = v[np.isfinite(v)]
+    return float(v.max()) if len(v) else float("nan")
+
+
 def _score_against_cad(out: Result, rows: list[dict], valid_rows: list[dict], grid: _Grid) -> None:
     """Upper-surface and lowest-point errors (valid cells) overall, per separation × ω; valley gap and skin
     penetration per ω."""
     out.metric("upper_rms_mm", _mean(valid_rows, "upper_rms_mm"), "mm")
     out.metric("lowest_point_rms_mm", _mean(valid_rows, "lowest_point_rms_mm"), "mm")
-    out.metric("skin_penetration_max_mm", float(np.nanmax([r["skin_penetration_mm"] for r in rows])), "mm")
+    out.metric("skin_penetration_max_mm", _max(rows, "skin_penetration_mm"), "mm")
     for design in grid.designs:
         st = _stag(design.pattern.separation_mm) if design.pattern.separation_mm in SEP_DESIGNS else None
         for k in grid.omega_idx:
@@ -182,8 +190,7 @@ def _score_against_cad(out: Result, rows: list[dict], valid_rows: list[dict], gr
                            _mean(valid_rows, "lowest_point_rms_mm", design=design.name, omega_index=k), "mm")
     for k in grid.omega_idx:
         out.metric(f"valley_gap_mm_{_otag(k)}", _mean(valid_rows, "valley_gap_mm", omega_index=k), "mm")
-        out.metric(f"skin_penetration_max_mm_{_otag(k)}",
-                   float(np.nanmax([r["skin_penetration_mm"] for r in rows if r["omega_index"] == k])), "mm")
+        out.metric(f"skin_penetration_max_mm_{_otag(k)}", _max(rows, "skin_penetration_mm", omega_index=k), "mm")
 
 
 def _split_verdict(vals: dict, low: list[int], high: list[int]) -> bool | None:
