@@ -1,5 +1,5 @@
-"""The sine experiment's scores when presses fail: an ω whose every cell raised (a skin mesh that folded
-leaves its cells out of the grid) is reported as unmeasured, not a crash of the whole experiment."""
+"""The sine experiment's scores when presses fail: an ω whose every cell raised (with μ = 1 both quick
+π/5 presses pushed markers out of the gel and did not render) is reported as unmeasured, not a crash of the whole experiment."""
 
 import math
 
@@ -18,7 +18,7 @@ def test_an_omega_without_cells_scores_nan_and_the_others_their_own():
     from pipeline.design import load_design
 
     d = load_design("hexagon61_sep354")
-    rows = [_row(d, 0, 0.044), _row(d, 2, 2.59), _row(d, 2, float("nan"))]   # ω index 4: every press failed
+    rows = [_row(d, 0, 0.044), _row(d, 2, 2.59), _row(d, 2, float("nan"))]   # ω index 4: every press failed to render
     out = Result(designs=[d], setups=[])
     _score_against_cad(out, rows, [r for r in rows if r["physics_valid"]], _Grid([0, 2, 4], [0.0], 1, [d], {}))
     m = {k: v for k, (v, _) in out.metrics.items()}

@@ -178,7 +178,8 @@ def _mean(valid_rows: list[dict], key: str, **sel) -> float:
 
 def _max(rows: list[dict], key: str, **sel) -> float:
     """Largest finite ``key`` over the cells matching ``sel``; NaN when none has one (every press of an ω can fail:
-    a skin mesh that folds leaves its cells out of ``rows``, or its penetration unmeasured)."""
+    a press whose markers leave the gel does not render and its cell is left out of ``rows``; a folded skin mesh
+    leaves its penetration unmeasured)."""
     v = np.array([r[key] for r in rows if all(r[a] == b for a, b in sel.items())], dtype=float)
     v = v[np.isfinite(v)]
     return float(v.max()) if len(v) else float("nan")
