@@ -16,8 +16,9 @@ Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.t
    bending/stretching ratio (log-scale bounded search) and the depth offset of the labels (first touch vs
    the labelled zero), each by a bounded 1-D search on the training taps (pin rotation, bending, offset,
    pin rotation again), scored on the markers' displacement from the reference tap; then the height of the
-   tap's tilt pivot (``twin.tilt_pivot_mm``, a grid from the dome's centre to its apex, the depth offset
-   re-searched for each, scored on every training tap), bending and pin rotation once more.
+   tap's tilt pivot (``twin.tilt_pivot_mm``, a coarse grid from the dome's centre to beyond its apex refined
+   by one parabolic step, the depth offset re-searched for each in a bracket around its extrapolated value,
+   scored on every training tap), bending (within a factor 2) and pin rotation once more.
 4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
    printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
 5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
@@ -57,9 +58,14 @@ CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap
 #: parameters that place the markers: pin spacing, the camera, tilt frame and mirror, bending, depth offset,
 #: pin rotation, tilt pivot
 FITTED_POSITION_PARAMETERS = 1 + len(CAM_KEYS) + 4 + 1 + 1
-#: candidate heights (mm) of the tap's tilt pivot above the dome's centre of curvature: from the centre
-#: (a tilted surface first touches at depth 0) to the apex of the 20 mm dome
-TILT_PIVOTS_MM = (0.0, 5.0, 10.0, 15.0, 20.0)
+#: coarse heights (mm) of the tap's tilt pivot above the dome's centre of curvature: from the centre (a tilted
+#: surface first touches at depth 0) past the apex of the 20 mm dome; one parabolic step refines the best
+TILT_PIVOTS_MM = (0.0, 12.0, 24.0, 36.0)
+#: the depth offset's fall per mm of pivot height (mm/mm) before two heights are scored, and the half-width of
+#: its search bracket around the value extrapolated from the heights scored (the offsets fitted from 0 to
+#: 20 mm fell 0.020-0.027 mm per mm)
+PIVOT_OFFSET_SLOPE = 0.022
+PIVOT_OFFSET_BRACKET_MM = 0.2
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
 
 
@@ -394,8 +400,11 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     bar.update(1)
     twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
     twin["tilt_pivot_mm"], pivot_scores = _fit_tilt_pivot(ctx, design, search, twin, bar)
+    # the pivot moves the bending ratio little (0.082 -> 0.107 for a pivot at the apex): re-searched within
+    # a factor 2 of its value
     f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
-    r = minimize_scalar(f_b, bounds=(-2.5, 1.5), method="bounded", options={"xatol": 0.05, "maxiter": 14})
+    lv0 = math.log10(twin["bending_ratio"])
+    r = minimize_scalar(f_b, bounds=(lv0 - 0.3, lv0 + 0.3), method="bounded", options={"xatol": 0.03, "maxiter": 10})
     twin["bending_ratio"] = float(10 ** r.x)
     twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
     bar.update(1)
@@ -435,19 +444,47 @@ def _fit_pin_rotation(ctx: FitContext, design: SensorDesign, search, twin: dict)
 
 
 def _fit_tilt_pivot(ctx: FitContext, design: SensorDesign, search, twin: dict, bar) -> tuple[float, list]:
-    """The height of the tap's tilt pivot over :data:`TILT_PIVOTS_MM`: for each, the depth offset re-searched on
-    the search taps (a higher pivot presses tilted taps deeper, which the offset partly absorbs), then scored
-    on the displacements of every training tap (the search taps alone under-weight the most tilted taps,
-    where the pivot matters). Returns the best height and the [height, offset, RMS px] rows."""
-    rows = []
+    """The height of the tap's tilt pivot above the dome's centre, from its centre to 16 mm past the apex of
+    the 20 mm dome (a tapping robot's tool centre point may lie beyond the apex, in the tapped object): a
+    coarse grid (:data:`TILT_PIVOTS_MM`), then one step to the vertex of the parabola through the best grid height and
+    its neighbours. For each height the depth offset is re-searched on the search taps (a higher pivot
+    presses tilted taps deeper, which the offset partly absorbs) in a bracket around its value extrapolated
+    from the heights already scored (the offset falls almost linearly with the height), then the height is
+    scored on the displacements of every training tap (the search taps alone under-weight the most tilted
+    taps, where the pivot matters). Returns the best height and the [height, offset, RMS px] rows in the
+    order scored."""
+    rows: list[list[float]] = []
     train = [i for i in ctx.train if i != ctx.ref]
-    for h in TILT_PIVOTS_MM:
+
+    def score(h: float) -> list[float]:
         t = {**twin, "tilt_pivot_mm": float(h)}
-        f_d = lambda v, t=t: ctx.displacement_rms(design, search, {**t, "depth_offset_mm": v})  # noqa: E731
-        r = minimize_scalar(f_d, bounds=(-1.5, 1.5), method="bounded", options={"xatol": 0.02, "maxiter": 12})
-        t["depth_offset_mm"] = float(r.x)
-        rows.append([float(h), float(r.x), ctx.displacement_rms(design, train, t)])
+        if rows:
+            known = sorted((r[0], r[1]) for r in rows)
+            if len(known) == 1:
+                pred = known[0][1] - PIVOT_OFFSET_SLOPE * (h - known[0][0])
+            else:
+                (h0, o0), (h1, o1) = min(((a, b) for a, b in zip(known, known[1:])),
+                                         key=lambda ab: abs(0.5 * (ab[0][0] + ab[1][0]) - h))
+                pred = o0 + (o1 - o0) * (h - h0) / (h1 - h0)
+            lo, hi = pred - PIVOT_OFFSET_BRACKET_MM, pred + PIVOT_OFFSET_BRACKET_MM
+            f_d = lambda v: ctx.displacement_rms(design, search, {**t, "depth_offset_mm": v})  # noqa: E731
+            r = minimize_scalar(f_d, bounds=(lo, hi), method="bounded", options={"xatol": 0.02, "maxiter": 12})
+            t["depth_offset_mm"] = float(r.x)
+        row = [float(h), float(t["depth_offset_mm"]), ctx.displacement_rms(design, train, t)]
+        rows.append(row)
         bar.update(1)
+        return row
+
+    # the height 0 keeps the offset the skin stage has just fitted (the same taps, the same search)
+    grid = [score(h) for h in TILT_PIVOTS_MM]
+    k = min(range(len(grid)), key=lambda j: grid[j][2])
+    if 0 < k < len(grid) - 1:
+        (h0, _, e0), (h1, _, e1), (h2, _, e2) = grid[k - 1], grid[k], grid[k + 1]
+        den = (h1 - h0) * (e1 - e2) - (h1 - h2) * (e1 - e0)
+        if den != 0:
+            hv = h1 - 0.5 * ((h1 - h0) ** 2 * (e1 - e2) - (h1 - h2) ** 2 * (e1 - e0)) / den
+            if h0 < hv < h2 and abs(hv - h1) > 0.5:
+                score(hv)
     h, off, _ = min(rows, key=lambda row: row[2])
     twin["depth_offset_mm"] = off
     return h, rows

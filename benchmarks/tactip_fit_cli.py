@@ -25,7 +25,8 @@ __all__ = ["fit_twin", "register", "cmd_fit", "PHYSICS_STAGE"]
 
 #: what the physics stage fits and scores (part of its cache key: a cached result of another version is
 #: recomputed, not reused)
-PHYSICS_STAGE = "tilt frame on positions; pin rotation, bending, depth offset, tilt pivot on displacements"
+PHYSICS_STAGE = ("tilt frame on positions; pin rotation, bending, depth offset, tilt pivot (coarse grid to 36 mm, "
+                 "parabolic refine) on displacements")
 
 
 
@@ -55,7 +56,7 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
     log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
         f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
         f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
-    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 6 + len(TILT_PIVOTS_MM), desc="fit-twin", unit="step", disable=not progress)
+    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 6 + len(TILT_PIVOTS_MM) + 1, desc="fit-twin", unit="step", disable=not progress)
     st = _Stages(Path(str(out) + ".cache"), ctx.key(), bar, log)
     twin0 = design.twin_params()
     s0 = _layout_stage(st, ctx, twin0)
@@ -139,7 +140,7 @@ def _physics_stage(st: _Stages, ctx: FitContext, d1, twin0: dict, s1: dict) -> d
 
     s23, hit = _cached(st.cache, "2_physics", digest(st.base_key, s1["cam"], PHYSICS_STAGE), fit)
     if hit:
-        st.bar.update(24 + 5 + len(TILT_PIVOTS_MM))
+        st.bar.update(24 + 5 + len(TILT_PIVOTS_MM) + 1)
     return s23
 
 
@@ -194,7 +195,7 @@ def _log_summary(log, summary: dict, c: dict, twin: dict, phys: dict, out: Path)
     log(f"  pin_rotation    {twin['pin_rotation']:.3f} ± {phys['sd']['pin_rotation']:.3f} "
         f"(pins {summary['pin_height_mm']:.2f} mm, the design's) "
         f"(displacement RMS on the search taps {phys['displacement_rms_px_search']:.2f} px)")
-    log(f"  tilt_pivot_mm   {twin['tilt_pivot_mm']:.1f} above the dome's centre (grid: " + ", ".join(
+    log(f"  tilt_pivot_mm   {twin['tilt_pivot_mm']:.1f} above the dome's centre (scored: " + ", ".join(
         f"{h:g} mm: offset {o:.2f}, {e:.3f} px" for h, o, e in phys.get("tilt_pivot_scores", [])) + ")")
     log("appearance: " + ", ".join(f"{k} {v:.3g}" for k, v in summary["appearance"]["values"].items()))
     log(f"residuals: train {train_rms:.2f} px, held out {held_rms:.2f} px (pin-tip RMS); wrote {out}")

@@ -220,6 +220,36 @@ def test_the_tilt_pivot_sets_how_deep_a_tilted_surface_reaches(skin, design):
 
 # ----- render and identification ----------------------------------------------------------
 
+class _PivotScores:
+    """A stand-in fit context whose displacement error is a known bowl in (pivot height, depth offset): the
+    offset that suits a height falls with it, as a deeper-reaching tilted tap asks."""
+
+    train, ref = [0, 1, 2], 0
+
+    def __init__(self, h_best):
+        self.h_best, self.calls = h_best, 0
+
+    def displacement_rms(self, design, idx, twin):
+        self.calls += 1
+        h, off = twin["tilt_pivot_mm"], twin["depth_offset_mm"]
+        return 1.7 + 1e-3 * (h - self.h_best) ** 2 + 4.0 * (off + 0.26 + 0.022 * h) ** 2
+
+
+@pytest.mark.parametrize("h_best", [7.0, 27.0])
+def test_the_tilt_pivot_search_refines_between_grid_heights_and_past_the_apex(h_best):
+    from types import SimpleNamespace
+
+    from benchmarks.tactip_fit import TILT_PIVOTS_MM, _fit_tilt_pivot
+
+    ctx, twin = _PivotScores(h_best), {"tilt_pivot_mm": 0.0, "depth_offset_mm": -0.26}
+    h, rows = _fit_tilt_pivot(ctx, None, [0, 1], twin, SimpleNamespace(update=lambda n: None))
+    assert max(TILT_PIVOTS_MM) > 20.0  # the search reaches beyond the 20 mm dome's apex
+    assert [r[0] for r in rows[:len(TILT_PIVOTS_MM)]] == list(TILT_PIVOTS_MM)
+    assert len(rows) == len(TILT_PIVOTS_MM) + 1  # one parabolic step off the grid
+    assert h == pytest.approx(h_best, abs=0.5)  # the bowl is a parabola in h: the step lands on it
+    assert twin["depth_offset_mm"] == pytest.approx(-0.26 - 0.022 * h, abs=0.02)
+
+
 def test_rendered_markers_are_detected_where_they_are_projected(design, skin):
     from twin.tactip import TapPose, project_markers, render_frame, tap_markers
 
