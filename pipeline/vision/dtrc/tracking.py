@@ -125,10 +125,11 @@ class DTRCTracker:
     def _from_rest(self, blobs: Blobs, coding: RingCoding, view: int) -> RingCoding:
         """A first frame's coding of one view, coded again from the rest pattern when ring coding left
         more than a tenth of the blobs (or slots) unidentified. The rest pattern's reading is taken
-        only when it explains the view, identifying all but a tenth of the blobs (or slots): a
-        calibration off by nearly a whole separation follows a few markers to their neighbours'
-        blobs and leaves the rest unexplained (measured: 24 of 67 blobs followed, all wrong, with
-        the rest pattern 0.9 separations off), a right one follows all but those it cannot see."""
+        only when it explains the view, identifying all but a tenth of the blobs (or slots); a partial
+        reading does not replace ring coding's. A calibration off by a whole separation can still
+        explain a view (half a pattern read one step towards its hidden side: 67 of 67 blobs, all
+        wrong, in both views alike), which this test cannot see: the runner's stereo check drops such
+        a frame (:data:`pipeline.runner.REST_DOUBT`, told by :attr:`read_from_rest`)."""
         n = min(len(blobs), _marker_count(self.design))
         if n < 4 or np.count_nonzero(coding.ids >= 0) >= REST_BELOW * n:
             return coding

@@ -108,8 +108,8 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
     the blob is displaced from an otherwise affine neighbourhood (farther from its prediction than
     :data:`SETTLED` and :data:`STANDS_OUT` times the largest residual of its immediate neighbours),
     or when the free blob is no farther off than a bend of that neighbourhood may displace the slot's
-    own pin (:data:`DISPLACED_REACH` times that residual). Decided last, so that a blob failing a neighbour's residual stays
-    R_INCONSISTENT, the evidence the anchoring test counts."""
+    own pin (:data:`DISPLACED_REACH` times that residual). Decided last, so that a blob failing a
+    neighbour's residual stays R_INCONSISTENT, the evidence the anchoring test counts."""
     n_design = _row_length(nbr, s)
     slots[0] = s
     blobs[0] = b
