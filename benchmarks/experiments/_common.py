@@ -21,7 +21,15 @@ __all__ = [
     "calibration_note",
     "make_indenter",
     "surface_grid",
+    "physically_valid",
+    "press_setup",
+    "CELL_COUNT_METRICS",
 ]
+
+#: The cell counts a press grid records (its ``register(metrics=...)`` declares them): cells that failed the
+#: twin's physics checks and cells that passed them (:func:`physically_valid`), presses that raised
+#: (:func:`run_press_cells`).
+CELL_COUNT_METRICS = {"invalid_cells": "1", "valid_cells": "1", "failed_cells": "1"}
 
 
 def rms(x: np.ndarray) -> float:
@@ -166,6 +174,35 @@ def validity_columns(truth) -> dict:
             "contact_force_n": num("contact_force_n"),
             "physics_valid": bool(v.get("valid", False)),
             "physics_reasons": list(v.get("reasons", ["no physics validity recorded"]))}
+
+
+def physically_valid(out, rows: list[dict], label, kept_out_of: str) -> list[dict]:
+    """The cells of ``rows`` that passed the twin's physics checks (:func:`validity_columns`); records the
+    ``invalid_cells`` and ``valid_cells`` metrics and, when any failed, a note naming each failed cell
+    (``label(row)``, with the checks' reasons) and what it is kept out of (every ``kept_out_of``)."""
+    valid = [r for r in rows if r["physics_valid"]]
+    invalid = [r for r in rows if not r["physics_valid"]]
+    out.metric("invalid_cells", len(invalid), "1")
+    out.metric("valid_cells", len(valid), "1")
+    if invalid:
+        out.notes.append(f"{len(invalid)} of {len(rows)} cells failed the twin's physics checks and are kept out of every "
+                         f"{kept_out_of}: " + "; ".join(f"{label(r)} ({'; '.join(r['physics_reasons'])})"
+                                                       for r in invalid) + ".")
+    return valid
+
+
+def press_setup(design, setup, seed: int, stream: str) -> tuple:
+    """What a press cell starts from: (its noise, the stream ``stream`` under ``seed``
+    (:func:`benchmarks.registry.stream_rng`); its sensor setup, ``setup`` or, None, the oracle setup of
+    ``design`` (the twin's exact sensor); the radius (mm) its surface is scored within, the pattern's less
+    half a separation of the design the pipeline is given)."""
+    from benchmarks.estimated import sensor_setup
+    from benchmarks.registry import stream_rng
+
+    rng = stream_rng(seed, stream)
+    setup = setup if setup is not None else sensor_setup(design)
+    given = setup.design
+    return rng, setup, given.pattern_radius_mm() - given.pattern.separation_mm / 2
 
 
 def friction_knob(ctx, out, default: float | None = None, why: str = "") -> float | None:

@@ -15,10 +15,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments._common import (friction_knob, gaussian_curvature_profile, make_indenter, radial_rms, rms,
+from benchmarks.experiments._common import (CELL_COUNT_METRICS, friction_knob, gaussian_curvature_profile,
+                                            make_indenter, physically_valid, press_setup, radial_rms, rms,
                                             run_press_cells, surface_grid, calibration_note, reconstruct,
                                             validity_columns)
-from benchmarks.registry import Context, Finding, Result, register, stream_rng
+from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
 H_MM = 5.0
@@ -58,9 +59,7 @@ def _tag(thickness_mm: float) -> str:
         **{f"rms_vs_cad_mm_skin{_tag(t)}": "mm" for t in SKIN_DESIGNS},
         **{f"centre_error_mm_skin{_tag(t)}": "mm" for t in SKIN_DESIGNS},
         **{f"conformity_gap_centre_mm_skin{_tag(t)}": "mm" for t in SKIN_DESIGNS},
-        "invalid_cells": "1",
-        "valid_cells": "1",
-        "failed_cells": "1",
+        **CELL_COUNT_METRICS,
         "rms_vs_true_skin_mm_valid": "mm",
         "skin_penetration_max_mm": "mm",
         **{f"skin_penetration_max_mm_s{_s2tag(s)}": "mm" for s in SIGMA2_MM2},
@@ -156,18 +155,12 @@ def _score_against_cad(out: Result, cells: list, grid: _Grid) -> None:
 def _physics_health(out: Result, rows: list[dict], sigma2s: list[float]) -> None:
     """Valid and invalid cells, the skin's deepest penetration of the indenter (overall and per σ²), and a note
     naming the invalid cells."""
-    invalid = [c for c in rows if not c["physics_valid"]]
-    out.metric("invalid_cells", len(invalid), "1")
-    out.metric("valid_cells", len(rows) - len(invalid), "1")
+    physically_valid(out, rows, lambda c: f"{c['design']} σ²={c['sigma2_mm2']:.3g} yaw {c['yaw_deg']:g}",
+                     "score against CAD and of the findings")
     out.metric("skin_penetration_max_mm", float(np.nanmax([c["skin_penetration_mm"] for c in rows])), "mm")
     for s2 in sigma2s:
         out.metric(f"skin_penetration_max_mm_s{_s2tag(s2)}",
                    float(np.nanmax([c["skin_penetration_mm"] for c in rows if c["sigma2_mm2"] == s2])), "mm")
-    if invalid:
-        out.notes.append(f"{len(invalid)} of {len(rows)} cells failed the twin's physics checks and are kept out of every "
-                         "score against CAD and of the findings: " + "; ".join(
-                             f"{c['design']} σ²={c['sigma2_mm2']:.3g} yaw {c['yaw_deg']:g} "
-                             f"({'; '.join(c['physics_reasons'])})" for c in invalid) + ".")
 
 
 def _findings(out: Result, rows: list[dict], grid: _Grid) -> None:
@@ -255,14 +248,11 @@ def press_cell(design, s2: float, yaw: float, seed: int, stream: str, setup=None
     ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
     given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``. ``friction``: the
     Coulomb coefficient of the press, None for the design's own."""
-    from benchmarks.estimated import sensor_setup
     from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press
 
-    rng = stream_rng(seed, stream)
-    setup = setup if setup is not None else sensor_setup(design)   # None: oracle (the twin's exact sensor)
+    rng, setup, radius = press_setup(design, setup, seed, stream)
     built, design, calib = setup.twin_design, setup.design, setup.calib
-    radius = design.pattern_radius_mm() - design.pattern.separation_mm / 2
     ind = make_indenter("gaussian", h_mm=H_MM, sigma2_mm2=s2)
     frame, truth = press(built, ind, DEPTH_MM, n_frames=1, yaw_deg=yaw, rng=rng, mesh=AXIS_CONTACT_MESH,
                          friction=friction)[-1]

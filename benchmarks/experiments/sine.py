@@ -14,9 +14,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments._common import (friction_knob, identity_correct, make_indenter, reconstruct, rms,
-                                            run_press_cells, surface_grid, calibration_note, validity_columns)
-from benchmarks.registry import Context, Finding, Result, register, stream_rng
+from benchmarks.experiments._common import (CELL_COUNT_METRICS, friction_knob, identity_correct, make_indenter,
+                                            physically_valid, press_setup, reconstruct, rms, run_press_cells,
+                                            surface_grid, calibration_note, validity_columns)
+from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
 AMPLITUDE_MM = 2.5
@@ -87,9 +88,7 @@ def _penetration(gap: np.ndarray, r: np.ndarray, radius_mm: float) -> float:
         "skin_penetration_max_mm": "mm",
         **{f"skin_penetration_max_mm_{_otag(k)}": "mm" for k in range(len(OMEGAS))},
         "wrong_ids": "1",
-        "invalid_cells": "1",
-        "valid_cells": "1",
-        "failed_cells": "1",
+        **CELL_COUNT_METRICS,
     },
     requires=("pipeline.runner", "pipeline.geometry.surface", "twin.simulate", "twin.render", "twin.indenters"),
 )
@@ -156,16 +155,9 @@ def _report_identification(out: Result, rows: list[dict], n_press: int) -> None:
 
 def _physically_valid(out: Result, rows: list[dict]) -> list[dict]:
     """The cells that passed the twin's physics checks (the only ones scored against CAD); counts and a note."""
-    valid_rows = [r for r in rows if r["physics_valid"]]
-    invalid = [r for r in rows if not r["physics_valid"]]
-    out.metric("invalid_cells", len(invalid), "1")
-    out.metric("valid_cells", len(valid_rows), "1")
-    if invalid:
-        out.notes.append(f"{len(invalid)} of {len(rows)} cells failed the twin's physics checks and are kept out of every "
-                         "score and finding below: " + "; ".join(
-                             f"{r['design']} ω={OMEGA_LABELS[r['omega_index']]} yaw {r['yaw_deg']:g} "
-                             f"({'; '.join(r['physics_reasons'])})" for r in invalid) + ".")
-    return valid_rows
+    return physically_valid(out, rows,
+                            lambda r: f"{r['design']} ω={OMEGA_LABELS[r['omega_index']]} yaw {r['yaw_deg']:g}",
+                            "score and finding below")
 
 
 def _mean(valid_rows: list[dict], key: str, **sel) -> float:
@@ -304,14 +296,11 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
     ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
     given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``. ``friction``: the
     Coulomb coefficient of the press (default :data:`SINE_FRICTION`), None for the design's own."""
-    from benchmarks.estimated import sensor_setup
     from twin.physics import MeshSpec
     from twin.simulate import press
 
-    rng = stream_rng(seed, stream)
-    setup = setup if setup is not None else sensor_setup(design)   # None: oracle (the twin's exact sensor)
+    rng, setup, radius = press_setup(design, setup, seed, stream)
     built, design, calib = setup.twin_design, setup.design, setup.calib
-    radius = design.pattern_radius_mm() - design.pattern.separation_mm / 2
     w = OMEGAS[k]
     ind = make_indenter("sine", amplitude_mm=AMPLITUDE_MM, omega_rad_per_mm=w)
     # face contact: the outer faces collide with spheres on the sine's crests and flanks (twin.contact), which the

@@ -118,23 +118,24 @@ def nearest_swept(pts, by_y, ys, x, y, k, out_idx, out_d2):
     if not (np.isfinite(x) and np.isfinite(y)):
         nearest(pts, x, y, k, out_idx, out_d2)
         return
-    m = len(ys)
     hi = np.searchsorted(ys, y)
-    n = 0
-    for j in range(hi, m):
+    n = _sweep(pts, by_y, hi, len(ys), 1, x, y, k, out_idx, out_d2, 0)
+    _sweep(pts, by_y, hi - 1, -1, -1, x, y, k, out_idx, out_d2, n)
+
+
+@numba.njit(inline="always")
+def _sweep(pts, by_y, start, stop, step, x, y, k, out_idx, out_d2, n):
+    """One direction of :func:`nearest_swept`: offer the points ``by_y[start:stop:step]`` in turn to the
+    ``n`` kept so far, stopping at the first whose ``dy * dy`` is beyond the k-th kept squared distance;
+    returns the new count."""
+    for j in range(start, stop, step):
         i = by_y[j]
         dy = pts[i, 1] - y
         if n == k and dy * dy > out_d2[k - 1]:
             break
         dx = pts[i, 0] - x
         n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
-    for j in range(hi - 1, -1, -1):
-        i = by_y[j]
-        dy = pts[i, 1] - y
-        if n == k and dy * dy > out_d2[k - 1]:
-            break
-        dx = pts[i, 0] - x
-        n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
+    return n
 
 
 @numba.njit(cache=True)
