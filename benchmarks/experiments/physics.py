@@ -11,7 +11,10 @@ A rigid sphere (radius ``R``) is pressed 0.25-3 mm into the skin module on the s
 * **The design** (Agilus30 skin 57× stiffer than the gel): no closed-form layered solution is used here;
   its force is reported beside the uniform-gel theory for scale.
 * **Symmetry**: the sphere on the axis is a symmetric load; the centre marker must not move sideways and
-  mirrored markers (x → −x, and (x, y) → (−x, −y)) must move as mirror images.
+  mirrored markers (x → −x, and (x, y) → (−x, −y)) must move as mirror images. The design is pressed on the
+  twin's mesh for indenters centred on the axis (``AXIS_CONTACT_MESH``: 0.5 mm cells within 3 mm of the axis,
+  mirrored split, face contact; the Gaussian experiment's and the demo's), and beside it on the 1.5 mm mesh of
+  the default ``MeshSpec()`` (every cell split along the same diagonal) and that mesh split mirrored.
 * **Mesh convergence**: the design pressed at one depth on three in-plane resolutions (with the finest
   also refined through the gel): force, peak marker displacement, marker positions vs the finest, and
   conformity (the frame's face-level penetration, :mod:`twin.validity`).
@@ -128,6 +131,7 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
         "force_ratio_uniform_median": "1", "force_ratio_uniform_max": "1", "force_ratio_uniform045_median": "1",
         "contact_radius_ratio_uniform_median": "1",
         "design_force_3mm_n": "N", "centre_marker_lateral_mm": "mm", "mirror_disagreement_max_mm": "mm",
+        "centre_marker_lateral_mm_default": "mm", "mirror_disagreement_max_mm_default": "mm",
         "centre_marker_lateral_mm_mirrored": "mm", "mirror_disagreement_max_mm_mirrored": "mm",
         "force_ratio_uniform_median_mirrored": "1",
         "force_ratio_uniform03_median": "1", "force_ratio_uniform_nodal_median": "1",
@@ -187,8 +191,10 @@ class _Case(NamedTuple):
 
 def _cases(design) -> list[_Case]:
     """The set-ups pressed over the depth series: the uniform gel at the gel's ν, 0.45 and the reference ν
-    (element-wise, mirrored split, nodal volumetric stiffness) and the design itself."""
-    from twin.physics import MeshSpec
+    (element-wise, mirrored split, nodal volumetric stiffness) and the design itself: on the axis contact mesh
+    (its mesh for an indenter centred on the axis), on the default 1.5 mm mesh, that mesh split mirrored, and with
+    nodal volumetric stiffness."""
+    from twin.physics import AXIS_CONTACT_MESH, MeshSpec
 
     nu_gel = design.gel.poisson_ratio
     sym = MeshSpec(mirrored_split=True)
@@ -201,7 +207,8 @@ def _cases(design) -> list[_Case]:
             _Case("uniform_nodal", _uniform(design, nu_gel), nu_gel, nodal),
             _Case("uniform045_nodal", _uniform(design, 0.45), 0.45, nodal),
             _Case("uniform_nodal_layered", _uniform(design, nu_gel), nu_gel, layered),
-            _Case("design", design, None, MeshSpec()), _Case("design_mirrored", design, None, sym),
+            _Case("design", design, None, AXIS_CONTACT_MESH), _Case("design_default", design, None, MeshSpec()),
+            _Case("design_mirrored", design, None, sym),
             _Case("design_nodal", design, None, nodal)]
 
 
@@ -240,10 +247,13 @@ def _force_depth(cases: list[_Case], depths: list[float], layer: _Layer, bar) ->
 
 
 class _Symmetry(NamedTuple):
-    """Centre marker's sideways motion and mirrored markers' largest disagreement (mm) at the deepest press."""
+    """Centre marker's sideways motion and mirrored markers' largest disagreement (mm) at the deepest press: on
+    the axis contact mesh, the default mesh and the default mesh split mirrored."""
 
     centre: float
     mirror: float
+    centre_default: float
+    mirror_default: float
     centre_mirrored: float
     mirror_mirrored: float
 
@@ -264,11 +274,14 @@ def _report_force_depth(out: Result, design, fd: _ForceDepth) -> _Symmetry:
     out.metric("force_ratio_uniform_max", float(max(r["ratio"] for r in rows if r["case"] == "uniform")), "1")
     out.metric("force_ratio_uniform045_median", med("uniform045", "ratio"), "1")
     out.metric("contact_radius_ratio_uniform_median", contact_ratio("uniform"), "1")
-    design_rows = [r for r in rows if r["case"] == "design"]   # the twin's production mesh
+    design_rows = [r for r in rows if r["case"] == "design"]   # the twin's mesh for an indenter on the axis
     out.metric("design_force_3mm_n", float(design_rows[-1]["force_n"]), "N")
     centre, mirror = _mirror_errors(design, fd.series["design"][-1][2])
     out.metric("centre_marker_lateral_mm", centre, "mm")
     out.metric("mirror_disagreement_max_mm", mirror, "mm")
+    centre_d, mirror_d = _mirror_errors(design, fd.series["design_default"][-1][2])
+    out.metric("centre_marker_lateral_mm_default", centre_d, "mm")
+    out.metric("mirror_disagreement_max_mm_default", mirror_d, "mm")
     centre_m, mirror_m = _mirror_errors(design, fd.series["design_mirrored"][-1][2])
     out.metric("centre_marker_lateral_mm_mirrored", centre_m, "mm")
     out.metric("mirror_disagreement_max_mm_mirrored", mirror_m, "mm")
@@ -292,7 +305,7 @@ def _report_force_depth(out: Result, design, fd: _ForceDepth) -> _Symmetry:
     out.metric("press_s_nodal_median", float(np.median([r["press_s"] for r in nod])), "s")
     out.metric("settle_steps_nodal_max", float(max(r["settle_steps"] for r in nod)), "1")
     out.metric("force_spread_rel_max", float(max(r["force_spread_rel"] for r in rows)), "1")
-    return _Symmetry(centre, mirror, centre_m, mirror_m)
+    return _Symmetry(centre, mirror, centre_d, mirror_d, centre_m, mirror_m)
 
 
 def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
@@ -361,8 +374,9 @@ def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], pr
     out.findings.append(Finding(
         f"a symmetric press gives a symmetric field (centre marker ≤ {SYMMETRY_TOL_MM} mm sideways, mirrored markers "
         f"within {SYMMETRY_TOL_MM} mm)",
-        f"centre marker {sym.centre:.3f} mm, mirrored markers up to {sym.mirror:.3f} mm apart (3 mm press, design, the "
-        f"twin's mesh); with the mirrored split {sym.centre_mirrored:.3f} / {sym.mirror_mirrored:.3f} mm",
+        f"centre marker {sym.centre:.4f} mm, mirrored markers up to {sym.mirror:.4f} mm apart (3 mm press, design, the "
+        f"twin's axis contact mesh); on the default 1.5 mm mesh (one split direction) {sym.centre_default:.3f} / "
+        f"{sym.mirror_default:.3f} mm, split mirrored {sym.centre_mirrored:.4f} / {sym.mirror_mirrored:.4f} mm",
         bool(sym.centre <= SYMMETRY_TOL_MM and sym.mirror <= SYMMETRY_TOL_MM)))
     if len(conv) >= 3:
         finest = conv[-1]
