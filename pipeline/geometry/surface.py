@@ -41,9 +41,10 @@ _GETRF, _GETRS = scipy.linalg.get_lapack_funcs(("getrf", "getrs"), (np.empty((2,
 # of the same size (:meth:`_Scratch.refined`), and factorised afresh only where that does not reach a residual
 # |b - A x| <= REFINE_RTOL (|A| |x| + |b|) (infinity norms) within REFINE_STEPS corrections. Measured on the
 # latency benchmark's circular217_dome press sequence (0-3 mm in 20 frames, and the 3 -> 0 mm jump): each
-# correction gains 1-1.5 decades; the direct solve's own residual is ~5e-20 on this scale, 1e-17 is reached
-# in 6-7 corrections, and the skin points then differ from the direct solve's by ~1e-11 mm. A correction
-# costs two triangular solves and a product (~0.015 ms for 217 markers) against ~0.3 ms for the factorisation.
+# correction gains 1-1.5 decades; the direct solve's own residual is ~5e-20 on this scale, 1e-15 is reached
+# in 5-6 corrections, and the skin points then differ from the direct solve's by ~1e-10 mm (1e-17: 7-8
+# corrections, ~1e-11 mm). A correction costs two triangular solves and a product (~0.02 ms for 217 markers)
+# against ~0.3 ms for the factorisation; the press sequence is factorised again every ~10 frames.
 REFINE_RTOL = 1e-15
 REFINE_STEPS = 10
 MIN_MARKERS = 6       # a thin-plate spline with a linear tail needs well over 3 non-collinear points
