@@ -44,8 +44,10 @@ moved more, not less), and 5-10x slower per tap; it is not kept. Coulomb frictio
 -0.639 mm, pin rotation 0.024, tilt pivot 17.5 mm) on the markers' displacements from the reference tap
 (projected pin tips): training error 1.87 / 1.78 / 2.23 px at mu 0 / 0.1 / 0.3, held out 2.00 / 1.88 /
 2.25 px. End to end (rendered, detected, identified) at mu 0.1 the held-out marker RMS is 2.05 px against
-2.17 frictionless, the held-out displacement error 1.88 px against 1.98. Friction holds the skin back
-on the tilted plane, the inner rings most: per ring, real / twin RMS displacement on the 10 held-out taps
+2.17 frictionless, the held-out displacement error 1.88 px against 1.98. A deeper depth offset does not
+favour more friction (the fit's 10 search taps: 1.77 px frictionless; mu 0.1 1.74 at the fitted offset,
+1.75 at 0.1 mm deeper; mu 0.2 1.96 at 0.15 mm deeper; mu 0.3 2.29 at 0.25 mm deeper). Friction holds
+the skin back on the tilted plane, the inner rings most: per ring, real / twin RMS displacement on the 10 held-out taps
 is 0.95-0.97 on rings 0-4 and 1.19-1.28 on rings 8-10 frictionless, 1.02-1.06 and 1.17-1.25 at mu 0.1,
 1.25-1.34 and 1.09-1.14 at mu 0.3 (on the 8 taps tilted 15-19 degrees: 0.95-0.98 / 1.16-1.26, 1.04-1.06 /
 1.15-1.24, 1.27-1.30 / 1.06-1.12): the outer rings' excess over the inner ones shrinks with friction, but
