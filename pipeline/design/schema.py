@@ -135,6 +135,7 @@ TWIN_KEYS: dict[str, float] = {
     "tilt_mirror": 0.0,            # 1: the second tilt angle turns the other way
     "tilt_pivot_mm": 0.0,          # height of the tap's tilt pivot above the dome's centre of curvature
     "pin_rotation": 1.0,           # fraction of the skin normal's rotation the pins' axes follow (0..1)
+    "tap_friction": 0.0,           # Coulomb coefficient of the TacTip tap's plane on the skin (0: frictionless)
     "marker_grey": 180.0,          # marker grey level at the image centre
     "marker_shading": 0.0,         # relative marker brightening per squared normalised image radius
     "background_grey": 20.0,       # grey level between the markers

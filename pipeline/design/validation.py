@@ -277,6 +277,9 @@ def _validate_mono(d: SensorDesign, where: str) -> None:
     if not 0.0 <= t["pin_rotation"] <= 1.0:
         raise DesignError(f"{where}: twin.pin_rotation: must be in [0, 1] (the fraction of the skin's rotation "
                           f"the pins follow), got {t['pin_rotation']!r}")
+    if not 0.0 <= t["tap_friction"] <= MAX_FRICTION:
+        raise DesignError(f"{where}: twin.tap_friction: must be a Coulomb coefficient in [0, {MAX_FRICTION:g}], "
+                          f"got {t['tap_friction']!r}")
     for key in ("marker_grey", "background_grey"):
         if not 0 <= t[key] <= 255:
             raise DesignError(f"{where}: twin.{key}: must be in [0, 255], got {t[key]!r}")
