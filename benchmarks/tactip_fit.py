@@ -137,7 +137,7 @@ class FitContext:
                       json.dumps(to_dict(self.design), sort_keys=True, default=str), TAP_MODEL, PIN_MODEL)
 
     # ----- twin taps ----------------------------------------------------------------------
-    _SKIN_KEYS = ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror", "tilt_pivot_mm")
+    _SKIN_KEYS = ("bending_ratio", "depth_offset_mm", "tilt_frame_deg", "tilt_mirror", "tilt_pivot_mm", "tap_friction")
 
     def _tap_key(self, i: int, params: dict, keys=_SKIN_KEYS + ("pin_rotation",)) -> tuple:
         return (i, tuple(sorted((a, round(b, 9)) for a, b in params.items() if a in keys)))

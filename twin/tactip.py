@@ -16,15 +16,9 @@ Physics (a reduced skin model, stated): the skin is a triangulated elastic membr
   ``tilt_pivot_mm * (1 - cos tilt)`` deeper along the surface's normal (at the dome radius the surface
   turns about the apex). A tapping robot tilts its tool about its tool centre point, which need not be
   the dome's centre; ``stereotactip fit-twin`` identifies the pivot's height;
-* friction: none by default (the ``[twin]`` key ``tap_friction``, a Coulomb coefficient, is 0). With
-  ``tap_friction`` > 0 the press is followed from first touch in depth steps of at most
-  :data:`FRICTION_STEP_MM` (the plane moves along the sensor axis, so on a tilted plane a touching node
-  slides relative to it unless friction holds it), each step adding a lagged, smoothed Coulomb
-  dissipation potential in the style of incremental potential contact (Li et al. 2020): a touching node's
-  slip ``u`` relative to the plane over the step, projected on the plane, costs ``mu * lambda * f0(|u|)``,
-  ``lambda`` its penalty contact force at the step's start and ``f0`` the slip smoothed below
-  :data:`FRICTION_EPS_MM` (the force rises from 0 to ``mu * lambda`` over that slip); its gradient and its
-  positive semi-definite Hessian enter the same projected-Newton solve.
+* friction: none by default (the ``[twin]`` key ``tap_friction``, a Coulomb coefficient, is 0); with
+  ``tap_friction`` > 0 the press is followed in depth steps with a lagged, smoothed Coulomb dissipation
+  (:mod:`twin.tactip_friction`, where what it was measured to do on the real taps is stated).
 
 The equilibrium is found by minimising the energy (projected Newton). A position-controlled tap
 into a rigid plane fixes the shape up to the stiffness *ratios*: the absolute modulus does not change the
@@ -40,20 +34,7 @@ Contact is frictionless by default. A no-slip contact (each touching node held w
 with the plane, the press followed in 0.5 mm steps) was measured on the real taps with the frictionless
 fit's camera and skin: held-out marker displacement error 5.1 px against 2.6 px frictionless (the markers
 moved more, not less), and 5-10x slower per tap; it is not kept. Coulomb friction between the two
-(``tap_friction``), measured with the frictionless fit's camera and skin held (bending 0.106, depth offset
--0.639 mm, pin rotation 0.024, tilt pivot 17.5 mm) on the markers' displacements from the reference tap
-(projected pin tips): training error 1.87 / 1.78 / 2.23 px at mu 0 / 0.1 / 0.3, held out 2.00 / 1.88 /
-2.25 px. End to end (rendered, detected, identified) at mu 0.1 the held-out marker RMS is 2.05 px against
-2.17 frictionless, the held-out displacement error 1.88 px against 1.98. A deeper depth offset does not
-favour more friction (the fit's 10 search taps: 1.77 px frictionless; mu 0.1 1.74 at the fitted offset,
-1.75 at 0.1 mm deeper; mu 0.2 1.96 at 0.15 mm deeper; mu 0.3 2.29 at 0.25 mm deeper). Friction holds
-the skin back on the tilted plane, the inner rings most: per ring, real / twin RMS displacement on the 10 held-out taps
-is 0.95-0.97 on rings 0-4 and 1.19-1.28 on rings 8-10 frictionless, 1.02-1.06 and 1.17-1.25 at mu 0.1,
-1.25-1.34 and 1.09-1.14 at mu 0.3 (on the 8 taps tilted 15-19 degrees: 0.95-0.98 / 1.16-1.26, 1.04-1.06 /
-1.15-1.24, 1.27-1.30 / 1.06-1.12): the outer rings' excess over the inner ones shrinks with friction, but
-the outer rings themselves still move too little. A tap with friction costs ~10x a frictionless one
-(depth steps of 0.25 mm, each a solve: ~17 s per tap against 1.6 s). ``stereotactip fit-twin`` does not
-fit the coefficient (0 unless the design sets it).
+(``tap_friction``): :mod:`twin.tactip_friction`.
 A surface tilted about the apex (through the apex at
 depth 0, pressed along its normal: a tapping robot's tool-point convention) lowered the held-out
 displacement error with the fitted camera and skin held (2.22 -> 2.01 px) but, re-fitted end to end,
@@ -70,10 +51,7 @@ pre-tension (edge rest lengths shortened by a pre-strain, the bending ratio and 
 spread the motion outwards but raised the held-out displacement error at every pre-strain (2.19 px at 0,
 2.23 at 0.01, 2.39 at 0.03 with the fitted camera held); not kept.
 
-Rendering: each marker is a disc (the pin tip) facing along its pin; its outline is projected through the
-camera (OpenCV model, distortion included; the flat acrylic window's refraction is folded into the fitted
-intrinsics), filled at 4x supersampling, blurred by the edge width, shaded and noised. Appearance numbers
-come from the design's ``[twin]`` section.
+Rendering: :mod:`twin.tactip_render` (the single camera's frame of the pin-tip markers).
 """
 
 from __future__ import annotations
@@ -81,7 +59,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import splu
@@ -89,8 +66,11 @@ from scipy.spatial import Delaunay
 
 from pipeline.design import SensorDesign, marker_layout
 from pipeline.errors import UserError
+from twin.tactip_friction import FRICTION_EPS_MM, FRICTION_STEP_MM, coulomb_dissipation, followed_press
+from twin.tactip_render import camera_extrinsics, project_markers, render_frame
 
-__all__ = ["TAP_MODEL", "PIN_MODEL", "TapPose", "DomeSkin", "pin_axes", "tap_markers", "project_markers", "render_frame", "check_monocular"]
+__all__ = ["TAP_MODEL", "PIN_MODEL", "TapPose", "DomeSkin", "pin_axes", "tap_markers", "project_markers", "render_frame",
+           "camera_extrinsics", "check_monocular", "FRICTION_STEP_MM", "FRICTION_EPS_MM"]
 
 #: what a tap means (part of the fit's cache keys: a fit cached under another meaning is recomputed)
 TAP_MODEL = ("membrane: frictionless plane tilted about a pivot tilt_pivot_mm above the dome's centre, pressed "
@@ -100,10 +80,7 @@ PIN_MODEL = ("rigid pins: base on the skin's inner surface along its normal, axi
              "normal's rotation from rest, tip at the pin height along the axis")
 VOLUME_WEIGHT = 1e5      # energy per (relative volume change)^2: the gel fill is incompressible
 CONTACT_WEIGHT = 1e3     # energy per mm^2 of penetration into the plane
-SUPERSAMPLE = 4
 STEP_TOL_MM = 1e-5       # Newton iterations stop when no node moves more than this
-FRICTION_STEP_MM = 0.25  # with friction, the press is followed in depth steps of at most this
-FRICTION_EPS_MM = 1e-3   # slip below which the smoothed Coulomb force falls linearly to 0 (static friction)
 DEBUG = False
 
 
@@ -263,64 +240,10 @@ class DomeSkin:
         return X, info
 
     def _press(self, m: np.ndarray, c: float, kb: float, mu: float, max_iter: int) -> tuple[np.ndarray, dict]:
-        """The press followed with Coulomb friction: the plane ``m . x = c`` is reached by moving it along
-        the sensor axis from where it first touches the rest skin, in equal steps of at most
-        :data:`FRICTION_STEP_MM`."""
-        # the plane at travel s further along the axis is m . x = c_s with c_s = c + (s_end - s) m_z;
-        # travel 0 is first touch of the rest nodes
-        mz = float(m[2])
-        travel = (float(np.max(self.X0 @ m)) - c) / mz if mz > 0 else 0.0
-        X = self.X0.copy()
-        free = self.free
-        lam = np.zeros(self.n_nodes)
-        slip = np.zeros(self.n_nodes)
-        n_steps = max(int(math.ceil(travel / FRICTION_STEP_MM - 1e-9)), 1) if travel > 0 else 0
-        e, n_total, converged, steps = 0.0, 0, True, []
-        for k in range(1, n_steps + 1):
-            ck = c + travel * (1.0 - k / n_steps) * mz
-            dp = np.array([0.0, 0.0, -travel / n_steps])     # the plane's displacement over the step
-            touching = free[lam[free] > 0.0]
-            fr = (touching, lam[touching], X[touching].copy(), dp, mu) if len(touching) else None
-            Xprev = X.copy()
-            X, e, n_it, ok = self._solve(X[free].ravel().copy(), m, ck, kb, max_iter, friction=fr)
-            n_total += n_it
-            converged &= ok
-            u = X - Xprev - dp
-            u -= np.outer(u @ m, m)
-            new_lam = 2 * CONTACT_WEIGHT * np.maximum(X @ m - ck, 0.0)
-            both = (lam > 0.0) & (new_lam > 0.0)
-            slip[both] += np.linalg.norm(u[both], axis=1)
-            lam = new_lam
-            steps.append(n_it)
-        return X, {"energy": e, "iterations": n_total, "converged": bool(converged), "steps": steps,
-                   "slip_mm": slip}
+        """The press followed with Coulomb friction (:func:`twin.tactip_friction.followed_press`)."""
+        return followed_press(self, m, c, kb, mu, max_iter, CONTACT_WEIGHT)
 
-    @staticmethod
-    def _friction(u: np.ndarray, lam: np.ndarray, mu: float, m: np.ndarray, hessian: bool = False):
-        """Lagged, smoothed Coulomb dissipation of touching nodes over one step (incremental potential
-        contact, Li et al. 2020): ``u`` (K, 3) each node's slip relative to the plane projected on it,
-        ``lam`` its normal force at the step's start. Per node ``mu lam f0(|u|)``, ``f0(y) = y`` beyond
-        :data:`FRICTION_EPS_MM` and ``-y^3 / (3 eps^2) + y^2 / eps + eps / 3`` below (C1: the force rises
-        from 0 to ``mu lam`` over a slip of eps); returns the energy and the gradient (K, 3) and, with
-        ``hessian``, its exact Hessian blocks (K, 3, 3) (positive semi-definite: ``2 / eps - 2 y / eps^2``
-        along the slip below eps, 0 beyond, ``f1(y) / y`` across it in the plane, 0 along the normal)."""
-        eps = FRICTION_EPS_MM
-        y = np.linalg.norm(u, axis=1)
-        w = mu * lam
-        low = y < eps
-        f0 = np.where(low, -y ** 3 / (3 * eps * eps) + y * y / eps + eps / 3, y)
-        f1y = np.where(low, 2 / eps - y / (eps * eps), 1.0 / np.maximum(y, eps))     # f1(y) / y
-        e = float(w @ f0)
-        g = (w * f1y)[:, None] * u
-        if not hessian:
-            return e, g
-        # (f1'(y) y - f1(y)) / y^3: -1 / eps^2 / y below eps (times u u^T, |u| = y), -1 / y^3 beyond
-        ys = np.maximum(y, 1e-300)
-        cu = np.where(low, -1.0 / (eps * eps * ys), -1.0 / ys ** 3)
-        cu = np.where(y > 0, cu, 0.0)
-        P = np.eye(3) - np.outer(m, m)
-        H = w[:, None, None] * (f1y[:, None, None] * P[None] + cu[:, None, None] * u[:, :, None] * u[:, None, :])
-        return e, g, H
+    _friction = staticmethod(coulomb_dissipation)
 
     def _solve(self, q: np.ndarray, m: np.ndarray, c: float, kb: float, max_iter: int,
                friction: tuple | None = None) -> tuple[np.ndarray, float, int, bool]:
@@ -454,60 +377,3 @@ def tap_markers(skin: DomeSkin, pose: TapPose, params: dict[str, float] | None =
 
 
 # ----- camera -------------------------------------------------------------------------------
-
-def camera_extrinsics(design: SensorDesign) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV rvec, tvec (camera_from_sensor) of a monocular design's camera."""
-    T = np.linalg.inv(design.camera_pose())
-    rvec, _ = cv2.Rodrigues(T[:3, :3])
-    return rvec.ravel(), T[:3, 3].copy()
-
-
-def project_markers(design: SensorDesign, points_mm: np.ndarray) -> np.ndarray:
-    """Image positions (N, 2) px of sensor-frame points through the design's camera."""
-    rvec, tvec = camera_extrinsics(design)
-    uv, _ = cv2.projectPoints(np.asarray(points_mm, np.float64).reshape(-1, 1, 3), rvec, tvec,
-                              design.camera.K, design.camera.D)
-    return uv.reshape(-1, 2)
-
-
-def render_frame(design: SensorDesign, centres: np.ndarray, axes: np.ndarray, *,
-                 seed: int = 0, n_outline: int = 16) -> np.ndarray:
-    """The camera's 8-bit grey frame of the markers (discs of the design's marker diameter x
-    ``marker_scale`` at ``centres``, facing along ``axes``)."""
-    cam = design.camera
-    tp = design.twin_params()
-    w, h = cam.width_px, cam.height_px
-    rad = 0.5 * design.markers.diameter_mm * tp["marker_scale"]
-    # outline of each disc: two unit vectors spanning its plane
-    a = np.asarray(axes, np.float64)
-    ref = np.where(np.abs(a[:, [2]]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-    e1 = np.cross(a, ref)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(a, e1)
-    t = 2 * np.pi * np.arange(n_outline) / n_outline
-    ring = (centres[:, None, :] + rad * (np.cos(t)[None, :, None] * e1[:, None, :]
-                                         + np.sin(t)[None, :, None] * e2[:, None, :]))
-    uv = project_markers(design, ring.reshape(-1, 3)).reshape(len(centres), n_outline, 2)
-    uvc = project_markers(design, centres)
-    # camera-frame depth: draw far markers first
-    T = np.linalg.inv(design.camera_pose())
-    depth = (centres @ T[:3, :3].T + T[:3, 3])[:, 2]
-    rho2 = ((uvc[:, 0] - cam.cx_px) ** 2 + (uvc[:, 1] - cam.cy_px) ** 2) / (0.5 * h) ** 2
-    grey = np.clip(tp["marker_grey"] * (1.0 + tp["marker_shading"] * rho2), 0, 255)
-    S = SUPERSAMPLE
-    canvas = np.full((h * S, w * S), 0, np.uint8)
-    shift = 4
-    for k in np.argsort(-depth):
-        if depth[k] <= 0:
-            continue
-        poly = np.rint((uv[k] + 0.5) * S * (1 << shift) - 0.5 * (1 << shift)).astype(np.int32)
-        cv2.fillPoly(canvas, [poly], int(round(grey[k])), lineType=cv2.LINE_8, shift=shift)
-    img = cv2.resize(canvas.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-    mask = cv2.resize((canvas > 0).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-    if tp["edge_px"] > 0.05:
-        img = cv2.GaussianBlur(img, (0, 0), tp["edge_px"])
-        mask = cv2.GaussianBlur(mask, (0, 0), tp["edge_px"])
-    img = img + tp["background_grey"] * (1.0 - mask)
-    if tp["noise_grey"] > 0:
-        img = img + np.random.default_rng(seed).normal(0.0, tp["noise_grey"], img.shape)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
