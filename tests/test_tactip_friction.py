@@ -11,24 +11,20 @@ from pipeline.design import load_design
 
 
 @pytest.fixture(scope="module")
-def design():
-    return load_design("tactip331")
-
-
-@pytest.fixture(scope="module")
-def skin(design):
+def skin():
+    """The tactip331 dome's skin model (its design: ``skin.design``)."""
     from twin.tactip import DomeSkin
 
-    return DomeSkin(design)
+    return DomeSkin(load_design("tactip331"))
 
 
-def test_a_frictionless_tap_is_one_solve_at_the_final_depth_as_before(skin, design):
+def test_a_frictionless_tap_is_one_solve_at_the_final_depth_as_before(skin):
     """tap_friction = 0 (the default) is the frictionless model: one projected-Newton solve at the final
     depth, the same energy and iterations as before friction existed (recorded), with or without the key;
     the press followed in depth steps with a vanishing coefficient reaches the same equilibrium."""
     from twin.tactip import TapPose
 
-    params = design.twin_params()
+    params = skin.design.twin_params()
     assert params["tap_friction"] == 0.0
     pose = TapPose(2.0, 12.0, -8.0)
     X, info = skin.tap(pose, params)
@@ -41,7 +37,7 @@ def test_a_frictionless_tap_is_one_solve_at_the_final_depth_as_before(skin, desi
     assert np.max(np.abs(Xp - X)) < 1e-3
 
 
-def test_coulomb_friction_holds_touching_nodes_on_a_tilted_tap(skin, design, monkeypatch):
+def test_coulomb_friction_holds_touching_nodes_on_a_tilted_tap(skin, monkeypatch):
     """On a tilted plane pressed along the sensor axis a frictionless skin slides along the plane; a Coulomb
     coefficient cuts the touching nodes' slip relative to the plane, the more the larger it is, and a large
     one approaches no-slip (the slip left is the smoothing's elastic stick, a few FRICTION_EPS_MM)."""
@@ -51,7 +47,7 @@ def test_coulomb_friction_holds_touching_nodes_on_a_tilted_tap(skin, design, mon
 
     monkeypatch.setattr(twin.tactip_friction, "FRICTION_STEP_MM", 0.5)
     pose = tt.TapPose(2.0, 12.0, -8.0)
-    params = design.twin_params()
+    params = skin.design.twin_params()
     m, c = skin.plane(pose, params)
     slips, states = {}, {}
     for mu in (1e-12, 0.3, 1.0, 10.0):
