@@ -21,6 +21,7 @@ __all__ = [
     "calibration_note",
     "make_indenter",
     "surface_grid",
+    "finite_max",
     "physically_valid",
     "press_setup",
     "CELL_COUNT_METRICS",
@@ -36,6 +37,14 @@ def rms(x: np.ndarray) -> float:
     x = np.asarray(x, dtype=np.float64)
     x = x[np.isfinite(x)]
     return float(np.sqrt(np.mean(x**2))) if x.size else float("nan")
+
+
+def finite_max(values) -> float:
+    """Largest finite value; NaN when there is none (nothing measured: a pattern without markers, a grid point
+    whose every press failed or left its penetration unmeasured)."""
+    v = np.asarray(list(values), dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.max()) if v.size else float("nan")
 
 
 def interp_heightmap(hm, xy_mm: np.ndarray) -> np.ndarray:

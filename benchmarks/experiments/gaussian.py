@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments._common import (CELL_COUNT_METRICS, friction_knob, gaussian_curvature_profile,
+from benchmarks.experiments._common import (CELL_COUNT_METRICS, finite_max, friction_knob, gaussian_curvature_profile,
                                             make_indenter, physically_valid, press_setup, radial_rms, rms,
                                             run_press_cells, surface_grid, calibration_note, reconstruct,
                                             validity_columns)
@@ -148,8 +148,7 @@ def _score_against_cad(out: Result, cells: list, grid: _Grid) -> None:
         out.metric(f"centre_error_mm_skin{t}", centre, "mm")
         out.metric(f"conformity_gap_centre_mm_skin{t}", float(np.nanmean([c["conformity_gap_centre_mm"] for c in sharp]))
                    if sharp else nan, "mm")
-    out.metric("centre_error_mm_sharpest", float(np.nanmax(list(centre_by_skin.values())))
-               if np.any(np.isfinite(list(centre_by_skin.values()))) else nan, "mm")
+    out.metric("centre_error_mm_sharpest", finite_max(centre_by_skin.values()), "mm")
 
 
 def _physics_health(out: Result, rows: list[dict], sigma2s: list[float]) -> None:
@@ -157,10 +156,10 @@ def _physics_health(out: Result, rows: list[dict], sigma2s: list[float]) -> None
     naming the invalid cells."""
     physically_valid(out, rows, lambda c: f"{c['design']} σ²={c['sigma2_mm2']:.3g} yaw {c['yaw_deg']:g}",
                      "score against CAD and of the findings")
-    out.metric("skin_penetration_max_mm", float(np.nanmax([c["skin_penetration_mm"] for c in rows])), "mm")
+    out.metric("skin_penetration_max_mm", finite_max(c["skin_penetration_mm"] for c in rows), "mm")
     for s2 in sigma2s:
         out.metric(f"skin_penetration_max_mm_s{_s2tag(s2)}",
-                   float(np.nanmax([c["skin_penetration_mm"] for c in rows if c["sigma2_mm2"] == s2])), "mm")
+                   finite_max(c["skin_penetration_mm"] for c in rows if c["sigma2_mm2"] == s2), "mm")
 
 
 def _findings(out: Result, rows: list[dict], grid: _Grid) -> None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from benchmarks.experiments._common import calibration_note, identity_correct, reconstruct
+from benchmarks.experiments._common import calibration_note, finite_max, identity_correct, reconstruct
 from benchmarks.registry import Context, Finding, PaperValue, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -101,8 +101,8 @@ def run(ctx: Context) -> Result:
     out.tables["per_pattern"] = rows
     out.metric("matched_fraction_min", min(r["matched_fraction"] for r in rows), "1")
     out.metric("identity_correct_fraction_min", min(r["identity_correct_fraction"] for r in rows), "1")
-    out.metric("localisation_rms_mm_max", _nanmax([r["localisation_rms_mm"] for r in rows]), "mm")
-    out.metric("localisation_max_mm", _nanmax([r["localisation_max_mm"] for r in rows]), "mm")
+    out.metric("localisation_rms_mm_max", finite_max(r["localisation_rms_mm"] for r in rows), "mm")
+    out.metric("localisation_max_mm", finite_max(r["localisation_max_mm"] for r in rows), "mm")
     out.notes.append(calibration_note(setups))
     out.findings.append(Finding(
         "every marker of every pattern is matched and localised",
@@ -131,9 +131,3 @@ def run(ctx: Context) -> Result:
                 fig.colorbar(sc, ax=ax, orientation="horizontal", shrink=0.6, pad=0.02, label="3-D error (mm)")
         out.figures.append(save_figure(fig, ctx.figure_path("patterns")))
     return out
-
-
-def _nanmax(values: list[float]) -> float:
-    """Largest finite value (NaN when a pattern had no markers at all: nothing was localised)."""
-    v = np.asarray(values, dtype=float)
-    return float(np.max(v[np.isfinite(v)])) if np.any(np.isfinite(v)) else float("nan")

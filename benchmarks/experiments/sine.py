@@ -14,9 +14,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments._common import (CELL_COUNT_METRICS, friction_knob, identity_correct, make_indenter,
-                                            physically_valid, press_setup, reconstruct, rms, run_press_cells,
-                                            surface_grid, calibration_note, validity_columns)
+from benchmarks.experiments._common import (CELL_COUNT_METRICS, finite_max, friction_knob, identity_correct,
+                                            make_indenter, physically_valid, press_setup, reconstruct, rms,
+                                            run_press_cells, surface_grid, calibration_note, validity_columns)
 from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -172,9 +172,7 @@ def _max(rows: list[dict], key: str, **sel) -> float:
     """Largest finite ``key`` over the cells matching ``sel``; NaN when none has one (every press of an ω can fail:
     a press whose markers leave the gel does not render and its cell is left out of ``rows``; a folded skin mesh
     leaves its penetration unmeasured)."""
-    v = np.array([r[key] for r in rows if all(r[a] == b for a, b in sel.items())], dtype=float)
-    v = v[np.isfinite(v)]
-    return float(v.max()) if len(v) else float("nan")
+    return finite_max(r[key] for r in rows if all(r[a] == b for a, b in sel.items()))
 
 
 def _score_against_cad(out: Result, rows: list[dict], valid_rows: list[dict], grid: _Grid) -> None:
