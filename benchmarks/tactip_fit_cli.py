@@ -15,7 +15,8 @@ import numpy as np
 
 from benchmarks.tactip_fit import (CAM_KEYS, FITTED_POSITION_PARAMETERS, LAYOUT_SEPARATIONS_MM, FitContext,
                                    apply_params, camera_vector, fit_appearance, fit_camera_all, fit_camera_reference,
-                                   fit_layout, fit_physics, TILT_PIVOTS_MM)
+                                   fit_layout, fit_physics)
+from benchmarks.tactip_fit_skin import PHYSICS_STEPS
 from pipeline.design import load_design, to_toml
 from pipeline.io.atomic import atomic_write_json, atomic_write_text
 from twin.tactip import check_monocular
@@ -56,7 +57,7 @@ def fit_twin(frames, targets, design_name, out: Path, *, progress: bool = True, 
     log(f"fit-twin: {len(ctx.frames)} frames, {len(ctx.train)} train / {len(ctx.held)} held out "
         f"(every {4}th frame by index held out: {', '.join(ctx.frames[i].path.name for i in ctx.held)}); "
         f"reference (shallowest training tap): {ctx.frames[ctx.ref].path.name}")
-    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + 24 + 6 + len(TILT_PIVOTS_MM) + 1, desc="fit-twin", unit="step", disable=not progress)
+    bar = tqdm(total=len(LAYOUT_SEPARATIONS_MM) + 5 + PHYSICS_STEPS + 6, desc="fit-twin", unit="step", disable=not progress)
     st = _Stages(Path(str(out) + ".cache"), ctx.key(), bar, log)
     twin0 = design.twin_params()
     s0 = _layout_stage(st, ctx, twin0)
@@ -140,7 +141,7 @@ def _physics_stage(st: _Stages, ctx: FitContext, d1, twin0: dict, s1: dict) -> d
 
     s23, hit = _cached(st.cache, "2_physics", digest(st.base_key, s1["cam"], PHYSICS_STAGE), fit)
     if hit:
-        st.bar.update(24 + 5 + len(TILT_PIVOTS_MM) + 1)
+        st.bar.update(PHYSICS_STEPS)
     return s23
 
 

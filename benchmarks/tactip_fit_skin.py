@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from benchmarks.tactip_fit import FitContext
 
 __all__ = ["fit_physics", "PIN_ROTATION_RANGE", "TILT_PIVOTS_MM", "PIVOT_OFFSET_SLOPE", "PIVOT_OFFSET_BRACKET_MM",
-           "SEARCH_FRAMES"]
+           "SEARCH_FRAMES", "TILT_FRAME_GRID", "PHYSICS_STEPS"]
 
 #: coarse heights (mm) of the tap's tilt pivot above the dome's centre of curvature: from the centre (a tilted
 #: surface first touches at depth 0) past the apex of the 20 mm dome; one parabolic step refines the best
@@ -30,6 +30,11 @@ TILT_PIVOTS_MM = (0.0, 12.0, 24.0, 36.0)
 PIVOT_OFFSET_SLOPE = 0.022
 PIVOT_OFFSET_BRACKET_MM = 0.2
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
+#: the tilt frame's coarse grid: both handedness of the second tilt, angles about the sensor axis (degrees)
+TILT_FRAME_GRID = [(mirror, psi) for mirror in (0.0, 1.0) for psi in np.arange(-180.0, 180.0, 30.0)]
+#: progress steps :func:`fit_physics` reports: the tilt-frame grid; the tilt frame's refinement, the bending ratio,
+#: the depth offset, the bending re-search and the uncertainties; each pivot height and the parabolic step
+PHYSICS_STEPS = len(TILT_FRAME_GRID) + 5 + len(TILT_PIVOTS_MM) + 1
 
 #: the pin rotation fraction is searched over its physical range: 0, pins that keep their rest direction
 #: while the skin turns under them; 1, pins held normal to the skin
@@ -61,10 +66,9 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     twin = dict(twin)
     tilted = sorted(ctx.train, key=lambda i: -np.hypot(ctx.frames[i].pose.tilt_x_deg, ctx.frames[i].pose.tilt_y_deg))[:4]
     grid = []
-    for mirror in (0.0, 1.0):
-        for psi in np.arange(-180.0, 180.0, 30.0):
-            grid.append((ctx.rms(design, tilted, {**twin, "tilt_frame_deg": psi, "tilt_mirror": mirror}), psi, mirror))
-            bar.update(1)
+    for mirror, psi in TILT_FRAME_GRID:
+        grid.append((ctx.rms(design, tilted, {**twin, "tilt_frame_deg": psi, "tilt_mirror": mirror}), psi, mirror))
+        bar.update(1)
     _, psi0, mirror = min(grid)
     twin["tilt_mirror"] = mirror
     search = _search_set(ctx)
