@@ -67,7 +67,7 @@ def test_the_smoothed_coulomb_term_is_consistent(skin):
     """The friction potential's gradient and Hessian match finite differences below and beyond the
     smoothing slip, the force's magnitude is mu x lambda beyond it, and the Hessian is positive
     semi-definite."""
-    from twin.tactip import FRICTION_EPS_MM, DomeSkin
+    from twin.tactip_friction import FRICTION_EPS_MM, coulomb_dissipation
 
     m = np.array([0.3, -0.2, 1.0])
     m /= np.linalg.norm(m)
@@ -77,14 +77,14 @@ def test_the_smoothed_coulomb_term_is_consistent(skin):
         u = rng.normal(size=(6, 3)) @ P
         u *= scale / np.linalg.norm(u, axis=1, keepdims=True)
         lam = rng.uniform(0.1, 2.0, 6)
-        e, g, H = DomeSkin._friction(u, lam, 0.7, m, hessian=True)
+        e, g, H = coulomb_dissipation(u, lam, 0.7, m, hessian=True)
         h = 1e-9
         for k in range(3):
             du = np.zeros_like(u)
             du[:, k] = h
-            ep = DomeSkin._friction((u + du) @ P, lam, 0.7, m)[0]
-            em = DomeSkin._friction((u - du) @ P, lam, 0.7, m)[0]
-            gp = DomeSkin._friction((u + du) @ P, lam, 0.7, m)[1]
+            ep = coulomb_dissipation((u + du) @ P, lam, 0.7, m)[0]
+            em = coulomb_dissipation((u - du) @ P, lam, 0.7, m)[0]
+            gp = coulomb_dissipation((u + du) @ P, lam, 0.7, m)[1]
             # the term depends on the slip projected on the plane: derivatives along P's columns
             assert (ep - em) / (2 * h) == pytest.approx(float(np.sum(g @ P[:, k])), rel=1e-5, abs=1e-9)
             np.testing.assert_allclose((gp - g) / h, H @ P[:, k], rtol=1e-4, atol=1e-3 * np.abs(H).max())

@@ -224,8 +224,9 @@ class DomeSkin:
         (from ``x_init`` when given). With a Coulomb coefficient ``tap_friction`` > 0 the press is followed
         from first touch in depth steps of at most :data:`FRICTION_STEP_MM` (``x_init`` is not used: the
         state depends on the path): each step adds a lagged, smoothed Coulomb dissipation potential
-        (:meth:`_friction`); the report then also carries the steps and each node's tangential slip over
-        the press relative to the plane (``slip_mm``, summed over the steps it was touching at both ends)."""
+        (:func:`twin.tactip_friction.coulomb_dissipation`); the report then also carries the steps and each
+        node's tangential slip over the press relative to the plane (``slip_mm``, summed over the steps it was
+        touching at both ends)."""
         m, c = self.plane(pose, params)
         kb = float(params["bending_ratio"])
         mu = float(params.get("tap_friction", 0.0))
@@ -234,22 +235,16 @@ class DomeSkin:
             X, e, n_it, converged = self._solve(q0, m, c, kb, max_iter)
             info = {"energy": e, "iterations": n_it, "converged": converged}
         else:
-            X, info = self._press(m, c, kb, mu, max_iter)
+            X, info = followed_press(self, m, c, kb, mu, max_iter, CONTACT_WEIGHT)
         pen = float(np.max(X @ m - c))
         info.update({"penetration_max_mm": max(pen, 0.0), "volume_change": (self.volume(X) - self.V0) / self.V0})
         return X, info
-
-    def _press(self, m: np.ndarray, c: float, kb: float, mu: float, max_iter: int) -> tuple[np.ndarray, dict]:
-        """The press followed with Coulomb friction (:func:`twin.tactip_friction.followed_press`)."""
-        return followed_press(self, m, c, kb, mu, max_iter, CONTACT_WEIGHT)
-
-    _friction = staticmethod(coulomb_dissipation)
 
     def _solve(self, q: np.ndarray, m: np.ndarray, c: float, kb: float, max_iter: int,
                friction: tuple | None = None) -> tuple[np.ndarray, float, int, bool]:
         """Projected Newton from the free nodes ``q`` against the plane ``m . x = c``; ``friction`` (nodes,
         their normal forces, their positions at the step's start, the plane's displacement over the step,
-        the coefficient) adds the step's Coulomb dissipation (:meth:`_friction`)."""
+        the coefficient) adds the step's Coulomb dissipation (:func:`coulomb_dissipation`)."""
         X = self.X0.copy()
         free = self.free
         i, j = self.edges[:, 0], self.edges[:, 1]
@@ -280,7 +275,7 @@ class DomeSkin:
             e += CONTACT_WEIGHT * float(pen @ pen)
             g += (2 * CONTACT_WEIGHT * pen)[:, None] * m
             if friction is not None:
-                ef, gf = self._friction((X[f_nodes] - f_x0 - f_dp) @ P, f_lam, f_mu, m)
+                ef, gf = coulomb_dissipation((X[f_nodes] - f_x0 - f_dp) @ P, f_lam, f_mu, m)
                 e += ef
                 g[f_nodes] += gf
             return e, g[free].ravel()
@@ -318,7 +313,7 @@ class DomeSkin:
                 cols.append(np.broadcast_to(c3, (len(active), 3, 3)).ravel())
                 vals.append(np.broadcast_to(mm, (len(active), 3, 3)).ravel())
             if friction is not None:
-                _, _, Hf = self._friction((X[f_nodes] - f_x0 - f_dp) @ P, f_lam, f_mu, m, hessian=True)
+                _, _, Hf = coulomb_dissipation((X[f_nodes] - f_x0 - f_dp) @ P, f_lam, f_mu, m, hessian=True)
                 r3 = (3 * pos[f_nodes])[:, None, None] + np.arange(3)[None, :, None]
                 c3 = (3 * pos[f_nodes])[:, None, None] + np.arange(3)[None, None, :]
                 rows.append(np.broadcast_to(r3, Hf.shape).ravel())
