@@ -85,6 +85,8 @@ def _uniform_rows(rows: list[dict], cases: list[dict], nu_gel: float, h_mm: floa
                 other = [r["ratio"] for r in rows if r["case"] == o["case"]]
                 if other:
                     measured.append(f"{_span(other)} at ν = {o['nu']:g}")
+        if all("press_s" in r for r in mine):
+            measured.append(f"{np.median([r['press_s'] for r in mine]):.2g} s a press")
         chi = [r["chi"] for r in mine]
         what = (f"uniform gel (skin and pins given the gel's material) on the {mesh_words(c)}: force vs Hertz with "
                 f"the bonded-layer correction of Dimitriadis et al. 2002 (h = {h_mm:g} mm, χ = {_span(chi)})" if not k
@@ -119,12 +121,13 @@ def _symmetry_rows(rows: list[dict], cases: list[dict], tol_mm: float) -> list[t
         if not mine or "centre_lateral_mm" not in mine[0]:
             continue
         deep = mine[-1]
-        centre = max(r["centre_lateral_mm"] for r in mine)
-        mirror = max(r["mirror_disagreement_mm"] for r in mine)
+        wc, wm = (max(mine, key=lambda r: r[k]) for k in ("centre_lateral_mm", "mirror_disagreement_mm"))
+        centre, mirror = wc["centre_lateral_mm"], wm["mirror_disagreement_mm"]
         depths = _depths(mine)
         valid = sum(bool(r["valid"]) for r in mine)
         measured = (f"{_mm(deep['centre_lateral_mm'])} / {_mm(deep['mirror_disagreement_mm'])} mm at "
-                    f"{deep['depth_mm']:g} mm; worst over {depths}: {_mm(centre)} / {_mm(mirror)} mm; {valid} of "
+                    f"{deep['depth_mm']:g} mm; worst over {depths}: {_mm(centre)} mm (at {wc['depth_mm']:g} mm) / "
+                    f"{_mm(mirror)} mm (at {wm['depth_mm']:g} mm); {valid} of "
                     f"{len(mine)} frames valid, skin ≤ {_mm(max(r['penetration_max_mm'] for r in mine))} mm inside")
         what = (f"symmetric press, the design on the {mesh_words(c)}: centre marker sideways / mirrored markers' "
                 "disagreement" if first else f"the same on the {mesh_words(c)}")
