@@ -11,15 +11,16 @@ metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``qu
 experiment: the paper's figures and claims beside the run's), the twin's speed and fidelity table
 (``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
 from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
-record), an oracle and an estimated quick run side by side (``oracle-vs-estimated``, ``report DIR --against
-DIR2``) and each error source of the estimated calibration alone (``error-sources``, three ``bench
-patterns,gaussian --quick --calibration estimated --error-sources SOURCE`` runs: ``report DIR --against DIR2
---against DIR3``). Each block's first line names the results directories it was written from;
-the records behind the README's headline blocks are kept in ``docs/records/`` so that
+record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), an oracle and an
+estimated quick run side by side (``oracle-vs-estimated``, ``report DIR --against DIR2``) and each error source
+of the estimated calibration alone (``error-sources``, three ``bench patterns,gaussian --quick --calibration
+estimated --error-sources SOURCE`` runs: ``report DIR --against DIR2 --against DIR3``). Each block's first line
+names the results directories it was written from; the records behind the README's headline blocks are kept in
+``docs/records/`` so that
 ``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
 
-The blocks' renderers are :mod:`benchmarks.readme_render` (and :mod:`benchmarks.readme_error_sources`); this
-module holds the markers, the registry and the writing of the README.
+The blocks' renderers are :mod:`benchmarks.readme_render` (and :mod:`benchmarks.readme_error_sources`,
+:mod:`benchmarks.readme_physics`); this module holds the markers, the registry and the writing of the README.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from benchmarks.readme_error_sources import error_sources_markdown
+from benchmarks.readme_physics import physics_checks_markdown
 from benchmarks.readme_render import (CALIBRATION_METRICS, Records, _identification_coverage, _oracle_vs_estimated,
                                       _quick_experiments, _tracking_identity, _twin_speed, gate_figures_markdown)
 from benchmarks.results import ResultsError, load_records
@@ -81,6 +83,9 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
                 "wrong ids and coverage per defect condition and pattern"),
     ReadmeBlock("tracking-identity", "tracking", _tracking_identity,
                 "DTRC vs nearest-neighbour ids per letter motion, with the frames' physics verdicts"),
+    ReadmeBlock("physics-checks", "physics", physics_checks_markdown,
+                "the contact mechanics against the bonded-layer Hertz solution, symmetry and mesh convergence, "
+                "with targets and verdicts"),
 )}
 
 

@@ -516,7 +516,7 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
     root = Path(__file__).resolve().parents[1]
     blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
-            "quick-experiments", "oracle-vs-estimated", "error-sources"} <= set(blocks)
+            "quick-experiments", "oracle-vs-estimated", "error-sources", "physics-checks"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # the quick run's gate figures, from the same kept records
             source, *other = re.findall(r"figures from `([^`]+)`", text)
@@ -621,6 +621,67 @@ def test_error_sources_block_is_written_from_three_ablation_runs(tmp_path):
                  str(runs["thickness"]), "--readme", str(readme), "--block", "error-sources"]) == 0
     assert "| metric (quick) | calibration only | index only | thickness only |" in readme.read_text()
     assert (runs["calibration"] / "report.md").read_text().count("## Side by side") == 2
+
+
+def _physics_record(conv_diffs: tuple[float, ...], shallow_centre_mm: float) -> dict:
+    """A small synthetic ``bench physics`` record: two depths, uniform gel on two meshes (one with a second ν),
+    the design on two meshes, and the convergence resolutions (coarsest first) with ``conv_diffs`` vs the finest."""
+    mesh = {"fine_mm": 1.5, "core_mm": None, "core_half_mm": 3.0, "gel_levels_mm": [1.5, 4.0],
+            "mirrored_split": False, "face_contact": False, "volumetric": "element"}
+    nodal, axis = {**mesh, "volumetric": "nodal"}, {**mesh, "core_mm": 0.5, "mirrored_split": True,
+                                                    "face_contact": True}
+    cases = [("uniform", 0.49, True, mesh, (1.04, 1.10)), ("uniform045", 0.45, True, mesh, (1.3, 1.4)),
+             ("uniform_nodal", 0.49, True, nodal, (1.1, 1.2)),
+             ("design", None, False, axis, (4.0, 5.0)), ("design_default", None, False, mesh, (4.0, 5.0))]
+    rows = []
+    for tag, nu, _, _, ratios in cases:
+        for depth, ratio in zip((1.0, 3.0), ratios):
+            centre = shallow_centre_mm if tag == "design_default" and depth == 1.0 else 0.001
+            rows.append({"case": tag, "nu": nu or 0.49, "depth_mm": depth, "force_n": ratio * depth, "theory_n": depth,
+                         "ratio": ratio, "chi": 0.1 * depth, "contact_radius_mm": math.sqrt(10 * depth),
+                         "hertz_radius_mm": math.sqrt(10 * depth), "penetration_max_mm": 0.01, "valid": True,
+                         "centre_lateral_mm": centre, "mirror_disagreement_mm": 0.004})
+    fines = (2.0, 1.5, 1.0)[2 - len(conv_diffs):]          # the production mesh (1.5 mm) and the finest among them
+    conv = [{"fine_mm": f, "gel_levels_mm": [1.5, 4.0], "depth_mm": 2.0, "force_n": 2.0 + d,
+             "penetration_max_mm": 0.05, "marker_diff_vs_finest_mm": d} for f, d in zip(fines, (*conv_diffs, 0.0))]
+    return {"experiment": "physics", "commit": "abc", "quick": False, "seed": 0, "metrics": {},
+            "design": {"name": "d", "skin": {"thickness_mm": 1.0, "youngs_modulus_mpa": 1.14, "material": "A"},
+                       "optics": {"gel_thickness_mm": 10.0},
+                       "gel": {"youngs_modulus_mpa": 0.02, "poisson_ratio": 0.49}},
+            "tables": {"force_depth": rows, "convergence": conv,
+                       "cases": [{"case": t, "nu": nu or 0.49, "uniform": u, **m} for t, nu, u, m, _ in cases]}}
+
+
+def test_physics_checks_block_decides_each_verdict_from_the_record():
+    """The physics-checks block has one row per mesh of the uniform gel (the other ν beside it) and of the design,
+    each verdict decided at every depth of the record; convergence is met when the differences shrink and the
+    production mesh is within the tolerance of the finest; a record without its tables is a clear error."""
+    from benchmarks.readme_blocks import render_block
+
+    def verdicts(rec) -> dict[str, str]:
+        text = render_block("physics-checks", {"physics": rec}, "docs/records/x")
+        rows = [[c.strip() for c in line.split("|")[1:-1]] for line in text.splitlines()[4:-2]]
+        return {r[0].split(":")[0].split(" (")[0]: (r[2], r[3]) for r in rows}
+
+    v = verdicts(_physics_record((0.05, 0.02), shallow_centre_mm=0.03))
+    uniform = next(k for k in v if k.startswith("uniform gel"))
+    assert v[uniform] == ("FE / theory 1.04–1.10 (median 1.07) at ν = 0.49; 1.30–1.40 at ν = 0.45", "met")
+    assert v["the same on the 1.5 mm mesh, one split direction, nodal volumetric stiffness, gel levels 1.5, 4 mm"][1] \
+        == "**not met**"                                    # 1.2 at 3 mm is beyond 15 %
+    sym = [k for k in v if k.startswith("symmetric press") or k.startswith("the same on the 1.5 mm mesh, one split "
+                                                                           "direction, gel levels")]
+    assert [v[k][1] for k in sym] == ["met", "**not met**"]   # the default mesh's centre marker at 1 mm only
+    assert v["mesh convergence, the design at 2 mm"] == (
+        "markers 0.05 / 0.02 mm, force +2 % / +1 %, face-level penetration 0.05 / 0.05 / 0.05 mm",
+        "shrinking, converged")
+    assert verdicts(_physics_record((0.02, 0.05), 0.0))["mesh convergence, the design at 2 mm"][1] == \
+        "**not shrinking**, **not converged**"
+    assert verdicts(_physics_record((0.05,), 0.0))["mesh convergence, the design at 2 mm"][1] == \
+        "**not converged**"                                # production only, vs the finest: nothing to shrink
+    rec = _physics_record((0.05, 0.02), 0.0)
+    del rec["tables"]["cases"]
+    with pytest.raises(res.ResultsError, match="no force_depth and cases tables"):
+        render_block("physics-checks", {"physics": rec}, "docs/records/x")
 
 
 def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy, tmp_path, monkeypatch):

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -220,12 +220,14 @@ class _ForceDepth:
     times: list = field(default_factory=list)     # seconds per press of the twin's own set-ups
     frames: list = field(default_factory=list)    # each pressed frame's validity
     series: dict = field(default_factory=dict)    # tag -> _press_series results (the truths)
+    cases: list = field(default_factory=list)     # the "cases" table: each case's ν and mesh (MeshSpec fields)
 
 
 def _force_depth(cases: list[_Case], depths: list[float], layer: _Layer, bar) -> _ForceDepth:
     """Press every case through the depth series; tabulate force, contact radius and health beside theory."""
     fd = _ForceDepth()
     for tag, d, nu, mesh in cases:
+        fd.cases.append({"case": tag, "nu": layer.nu if nu is None else nu, "uniform": nu is not None, **asdict(mesh)})
         res, secs, _ = _press_series(d, depths, mesh)
         if "nodal" not in tag and tag != "uniform03":
             fd.times.append(secs / len(depths))   # the twin's own set-ups
@@ -239,7 +241,8 @@ def _force_depth(cases: list[_Case], depths: list[float], layer: _Layer, bar) ->
                             "penetration_max_mm": v["penetration_max_mm"],
                             "valid": bool(v["valid"]), "reasons": list(v["reasons"]), "converged": bool(st.converged),
                             "settle_steps": int(st.steps), "direct": bool(st.direct), "force_spread_rel": spread,
-                            "press_s": secs / len(depths)})
+                            "press_s": secs / len(depths),
+                            **dict(zip(("centre_lateral_mm", "mirror_disagreement_mm"), _mirror_errors(d, tr)))})
             fd.frames.append(v)
         fd.series[tag] = res
         bar.update()
@@ -317,7 +320,8 @@ def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
         res, secs, sim = _press_series(design, [conv_depth], MeshSpec(fine_mm=fine, gel_levels_mm=tuple(levels)))
         _, f, tr, st, _ = res[0]
         dz = tr.marker_xyz_mm[:, 2] - design.rest_markers_mm()[:, 2]
-        conv.append({"fine_mm": fine, "gel_levels_mm": list(levels), "dofs": int(sim.model.nv), "force_n": f,
+        conv.append({"fine_mm": fine, "gel_levels_mm": list(levels), "depth_mm": conv_depth, "dofs": int(sim.model.nv),
+                     "force_n": f,
                      "peak_marker_dz_mm": float(-dz.min()), "penetration_max_mm": tr.validity["penetration_max_mm"],
                      "seconds": secs, "markers": tr.marker_xyz_mm, "validity": tr.validity})
         bar.update()
@@ -338,6 +342,7 @@ def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict]) -> dict:
     out.metric("invalid_frames", float(sum(not v["valid"] for v in frames)), "1")
     out.metric("press_s_median", float(np.median(fd.times)), "s")
     out.tables["force_depth"] = fd.rows
+    out.tables["cases"] = fd.cases
     out.tables["convergence"] = [{k: v for k, v in c.items() if k not in ("markers", "validity")} for c in conv]
     return prod
 
