@@ -59,6 +59,7 @@ CONTACT_RADIUS_MM = 0.25     # vertex contact sphere > the 0.2 mm height-field c
                              # prisms (0.12 mm let the stiff apex vertex slip through a prism wall: σ² = 10, 5 mm,
                              # 0.75 mm inside); slope error r(1/cos θ - 1) <= 0.10 mm up to 45°
 ELASTIC3D_STABLE_NEO_HOOKEAN = 1   # MuJoCo flex ``elastic3d``: 0 = St Venant–Kirchhoff, 1 = stable Neo-Hookean
+ROLLER_SLACK_M = 1e-9          # a roller rim vertex's x-y range about its rest position (MeshSpec.rim = "roller")
 CONTACT_TIMECONST_STEPS = 2.0  # contact solref time constant in physics steps (the smallest MuJoCo allows)
 CONTACT_DAMPRATIO = 0.7
 _FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
@@ -152,7 +153,12 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
             continue
         b = mjspec.worldbody.add_body(name=f"v{n}", pos=X_m[n].tolist())
         for ax, axis in zip("xyz", ((1, 0, 0), (0, 1, 0), (0, 0, 1))):
-            b.add_joint(type=mj.mjtJoint.mjJNT_SLIDE, axis=list(axis), name=f"v{n}{ax}")
+            jnt = b.add_joint(type=mj.mjtJoint.mjJNT_SLIDE, axis=list(axis), name=f"v{n}{ax}")
+            if m.roller is not None and m.roller[n] and ax != "z":
+                # a roller rim holds the vertex on the mount's wall: x and y limited to their rest values
+                jnt.limited, jnt.range = True, [-ROLLER_SLACK_M, ROLLER_SLACK_M]
+                jnt.solref_limit = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]   # as stiff as a contact
+                jnt.solimp_limit = [0.99, 0.999, 1e-5, 0.5, 2.0]
         b.mass = materials.MASS_SCALE * volumetric_mass_factor(spec) * dt * dt * kd[n]
         b.inertia = [1e-15] * 3
         b.explicitinertial = True
@@ -196,6 +202,9 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
     mjspec.add_hfield(name="indenter", size=[float(units.mm_to_m(hx)), float(units.mm_to_m(hy)),
                                            float(units.mm_to_m(span)), float(units.mm_to_m(2.0))],
                     nrow=z.shape[0], ncol=z.shape[1], userdata=((z - hmin) / span).ravel().tolist())
+    # the outer vertices that can stick to the indenter: not those a roller rim holds in x-y already
+    roller = m.roller if m.roller is not None else np.zeros(V, bool)
+    stick_candidates = free[is_top[free] & ~roller[free]]
     if friction > 0:
         # Friction acts on relative velocity, and a mocap body has none (it is teleported): the skin would
         # be held where it is, not dragged along. With friction the indenter is a heavy body on three
@@ -210,7 +219,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         body.explicitinertial = True
         # stick: two (inactive) joint equalities per free outer vertex, x and y, switched on by the Coulomb
         # check (twin.stick) while the vertex sticks to the indenter at the point where it touched
-        for n in free[is_top[free]]:
+        for n in stick_candidates:
             for ax in "xy":
                 e = mjspec.add_equality()
                 e.type, e.objtype = mj.mjtEq.mjEQ_JOINT, mj.mjtObj.mjOBJ_JOINT
@@ -253,7 +262,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         ind_qadr = model.jnt_qposadr[jid].copy()
         ind_dadr = model.jnt_dofadr[jid].copy()
         free_pos = {int(n): i for i, n in enumerate(free)}
-        stick_nodes = free[is_top[free]]
+        stick_nodes = stick_candidates
         stick_free = np.array([free_pos[int(n)] for n in stick_nodes], dtype=np.int64)
         stick_k = ks[stick_nodes]
         stick_eq = np.arange(2 * len(stick_nodes)).reshape(-1, 2)   # the model's only equalities: (x, y) per vertex
