@@ -235,10 +235,16 @@ class DomeSkin:
             X, e, n_it, converged = self._solve(q0, m, c, kb, max_iter)
             info = {"energy": e, "iterations": n_it, "converged": converged}
         else:
-            X, info = followed_press(self, m, c, kb, mu, max_iter, CONTACT_WEIGHT)
+            X, info = followed_press(self, m, c, kb, mu, max_iter)
         pen = float(np.max(X @ m - c))
         info.update({"penetration_max_mm": max(pen, 0.0), "volume_change": (self.volume(X) - self.V0) / self.V0})
         return X, info
+
+    @staticmethod
+    def normal_force(X: np.ndarray, m: np.ndarray, c: float) -> np.ndarray:
+        """Each node's normal force from the plane ``m . x = c``: the derivative of the contact penalty
+        ``CONTACT_WEIGHT * penetration^2`` (energy units per mm, >= 0)."""
+        return 2 * CONTACT_WEIGHT * np.maximum(X @ m - c, 0.0)
 
     def _solve(self, q: np.ndarray, m: np.ndarray, c: float, kb: float, max_iter: int,
                friction: tuple | None = None) -> tuple[np.ndarray, float, int, bool]:
@@ -273,7 +279,7 @@ class DomeSkin:
             g += kv * (self.Tk[0] @ bc + self.Tk[1] @ np.cross(cc, a) + self.Tk[2] @ np.cross(a, b))
             pen = np.maximum(X @ m - c, 0.0)
             e += CONTACT_WEIGHT * float(pen @ pen)
-            g += (2 * CONTACT_WEIGHT * pen)[:, None] * m
+            g += self.normal_force(X, m, c)[:, None] * m
             if friction is not None:
                 ef, gf = coulomb_dissipation((X[f_nodes] - f_x0 - f_dp) @ P, f_lam, f_mu, m)
                 e += ef

@@ -38,13 +38,12 @@ FRICTION_STEP_MM = 0.25  # with friction, the press is followed in depth steps o
 FRICTION_EPS_MM = 1e-3   # slip below which the smoothed Coulomb force falls linearly to 0 (static friction)
 
 
-def followed_press(skin, m: np.ndarray, c: float, kb: float, mu: float, max_iter: int,
-                   contact_weight: float) -> tuple[np.ndarray, dict]:
+def followed_press(skin, m: np.ndarray, c: float, kb: float, mu: float, max_iter: int) -> tuple[np.ndarray, dict]:
     """The press of :class:`twin.tactip.DomeSkin` ``skin`` followed with Coulomb friction: the plane
     ``m . x = c`` is reached by moving it along the sensor axis from where it first touches the rest skin,
     in equal steps of at most :data:`FRICTION_STEP_MM`, each solved by ``skin._solve`` with the step's
-    dissipation (:func:`coulomb_dissipation`); ``contact_weight`` is the plane's penalty stiffness (the
-    normal force of a node is its derivative)."""
+    dissipation (:func:`coulomb_dissipation`), whose normal forces are the skin's own
+    (``skin.normal_force``) at the step's start."""
     # the plane at travel s further along the axis is m . x = c_s with c_s = c + (s_end - s) m_z;
     # travel 0 is first touch of the rest nodes
     mz = float(m[2])
@@ -66,7 +65,7 @@ def followed_press(skin, m: np.ndarray, c: float, kb: float, mu: float, max_iter
         converged &= ok
         u = X - Xprev - dp
         u -= np.outer(u @ m, m)
-        new_lam = 2 * contact_weight * np.maximum(X @ m - ck, 0.0)
+        new_lam = skin.normal_force(X, m, ck)
         both = (lam > 0.0) & (new_lam > 0.0)
         slip[both] += np.linalg.norm(u[both], axis=1)
         lam = new_lam
