@@ -203,6 +203,7 @@ def _twin_speed(records: Records, source: str) -> str:
 _CONDITION_LABELS = {
     "defects_0": "clean", "defects_1": "1 % missing + 1 % spurious", "defects_3": "3 % + 3 %",
     "defects_5": "5 % + 5 %", "defects_10": "10 % + 10 %", "occlusion_15": "contiguous 15 % patch occluded",
+    "occlusion_15_rest": "the same patch in a first frame read from rest (±2°)",
     "jitter_30": "centre jitter 0.3 separations", "rotation_30": "turned ±30°",
     "press_stereo": "Gaussian press 1–5 mm, stereo, 3 % + 3 % per view",
 }

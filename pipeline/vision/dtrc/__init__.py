@@ -46,7 +46,7 @@ from pipeline.vision.dtrc.mesh import LONG_EDGE_FACTOR, OUTLIER_NN_FACTOR, SLIVE
 from pipeline.vision.dtrc.peel import peel_rings
 from pipeline.vision.dtrc.prediction import PREDICT_GATE
 from pipeline.vision.dtrc.proposals import carry_ids
-from pipeline.vision.dtrc.tracking import DTRCTracker, NearestNeighbourTracker, match_stereo
+from pipeline.vision.dtrc.tracking import DTRCTracker, NearestNeighbourTracker, match_stereo, read_from_rest
 
-__all__ = ["RingCoding", "code_rings", "carry_ids", "match_stereo", "DTRCTracker", "NearestNeighbourTracker",
+__all__ = ["RingCoding", "code_rings", "carry_ids", "match_stereo", "DTRCTracker", "NearestNeighbourTracker", "read_from_rest",
            "mesh_edges", "peel_rings", "OUTLIER_NN_FACTOR", "SLIVER_RADIUS_FACTOR", "LONG_EDGE_FACTOR", "PREDICT_GATE"]

@@ -63,6 +63,23 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
     return _pair(left, right, code_rings(left, design), code_rings(right, design), _marker_count(design))
 
 
+def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
+                   rest: tuple[np.ndarray, np.ndarray]) -> RingCoding:
+    """A first frame's coding of one view, coded again from the rest pattern ``rest`` ((N, 2) px where
+    the calibration puts the undeformed skin's markers, their ids) when ring coding left more than a
+    tenth of the blobs (or slots) unidentified (:data:`REST_BELOW`). The rest pattern's reading is
+    taken only when it explains the view, identifying all but a tenth of the blobs (or slots); a
+    partial reading does not replace ring coding's. A calibration off by a whole separation can still
+    explain a view (half a pattern read one step towards its hidden side: 67 of 67 blobs, all wrong,
+    in both views alike), which this test cannot see: the runner's stereo check drops such a frame
+    (:data:`pipeline.runner.REST_DOUBT`, told by :attr:`DTRCTracker.read_from_rest`)."""
+    n = min(len(blobs), _marker_count(design))
+    if n < 4 or np.count_nonzero(coding.ids >= 0) >= REST_BELOW * n:
+        return coding
+    again = code_rings(blobs, design, previous=rest)
+    return again if np.count_nonzero(again.ids >= 0) >= REST_BELOW * n else coding
+
+
 class DTRCTracker:
     """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
     previous frame's identified markers propose ids where coding alone cannot (crowding, large
@@ -123,18 +140,7 @@ class DTRCTracker:
     __call__ = update
 
     def _from_rest(self, blobs: Blobs, coding: RingCoding, view: int) -> RingCoding:
-        """A first frame's coding of one view, coded again from the rest pattern when ring coding left
-        more than a tenth of the blobs (or slots) unidentified. The rest pattern's reading is taken
-        only when it explains the view, identifying all but a tenth of the blobs (or slots); a partial
-        reading does not replace ring coding's. A calibration off by a whole separation can still
-        explain a view (half a pattern read one step towards its hidden side: 67 of 67 blobs, all
-        wrong, in both views alike), which this test cannot see: the runner's stereo check drops such
-        a frame (:data:`pipeline.runner.REST_DOUBT`, told by :attr:`read_from_rest`)."""
-        n = min(len(blobs), _marker_count(self.design))
-        if n < 4 or np.count_nonzero(coding.ids >= 0) >= REST_BELOW * n:
-            return coding
-        again = code_rings(blobs, self.design, previous=self.rest[view])
-        return again if np.count_nonzero(again.ids >= 0) >= REST_BELOW * n else coding
+        return read_from_rest(blobs, self.design, coding, self.rest[view])
 
     def forget(self, ids: np.ndarray) -> None:
         """Drop ``ids`` from the markers the next frame is given as certain in the previous one: a
