@@ -162,17 +162,21 @@ def _sweep(args: argparse.Namespace) -> int:
 def _report(args: argparse.Namespace) -> int:
     from benchmarks.report import write_report
 
-    against = [Path(d) for d in args.against or ()]
-    path = write_report(Path(args.dir), against=against)
-    print(path)
-    if args.readme:
-        from benchmarks.readme_blocks import update_readme
+    from benchmarks.readme_blocks import BLOCKS, update_readme
 
-        print(update_readme(Path(args.readme), Path(args.dir), tuple(args.block or ("gate-figures",)),
-                            against_dir=against))
-    print(path.with_name("report.html"))
-    if path.with_name("report.png").is_file():
-        print(path.with_name("report.png"))
+    against = [Path(d) for d in args.against or ()]
+    blocks = tuple(args.block or ("gate-figures",))
+    # a block written from a command's own summary (validate's summary.json) has no benchmark records to report on
+    pages = not (args.readme and all(b in BLOCKS and BLOCKS[b].reads_file for b in blocks))
+    path = write_report(Path(args.dir), against=against) if pages else None
+    if path is not None:
+        print(path)
+    if args.readme:
+        print(update_readme(Path(args.readme), Path(args.dir), blocks, against_dir=against))
+    if path is not None:
+        print(path.with_name("report.html"))
+        if path.with_name("report.png").is_file():
+            print(path.with_name("report.png"))
     return 0
 
 

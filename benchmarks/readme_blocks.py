@@ -11,8 +11,9 @@ metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``qu
 experiment: the paper's figures and claims beside the run's), the twin's speed and fidelity table
 (``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
 from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
-record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), an oracle and an
-estimated quick run side by side (``oracle-vs-estimated``, ``report DIR --against DIR2``) and each error source
+record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), the TacTip twin
+against labelled real frames (``tactip-validation``, from the ``summary.json`` that ``stereotactip validate``
+writes), an oracle and an estimated quick run side by side (``oracle-vs-estimated``, ``report DIR --against DIR2``) and each error source
 of the estimated calibration alone (``error-sources``, three ``bench patterns,gaussian --quick --calibration
 estimated --error-sources SOURCE`` runs: ``report DIR --against DIR2 --against DIR3``). Each block's first line
 names the results directories it was written from; the records behind the README's headline blocks are kept in
@@ -21,10 +22,18 @@ names the results directories it was written from; the records behind the README
 
 The blocks' renderers are :mod:`benchmarks.readme_render` (and :mod:`benchmarks.readme_error_sources`,
 :mod:`benchmarks.readme_physics`); this module holds the markers, the registry and the writing of the README.
+
+A block is written from benchmark records (``experiment`` names the record) or, where the figures are a command's
+own output rather than a benchmark's, from that command's summary file: ``experiment`` is then a file name
+(``summary.json``) that :func:`load_block_records` reads as JSON, as it stands, under that name. The validate summary
+is read this way rather than copied into a benchmark record so that the block and the kept summary are one file and
+cannot disagree, and neither ``validate``'s output nor the benchmark record format changes for it; ``report`` writes
+no report pages for such a block (they are the command's own: ``validate`` writes ``report.md`` itself).
 """
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,18 +41,20 @@ from typing import Callable, Sequence
 
 from benchmarks.readme_error_sources import error_sources_markdown
 from benchmarks.readme_physics import physics_checks_markdown
-from benchmarks.readme_render import (CALIBRATION_METRICS, Records, _identification_coverage, _oracle_vs_estimated,
-                                      _quick_experiments, _tracking_identity, _twin_speed, gate_figures_markdown)
+from benchmarks.readme_render import (CALIBRATION_METRICS, VALIDATE_SUMMARY, Records, _identification_coverage,
+                                      _oracle_vs_estimated, _quick_experiments, _tactip_validation, _tracking_identity,
+                                      _twin_speed, gate_figures_markdown)
 from benchmarks.results import ResultsError, load_records
 
 __all__ = ["BLOCKS", "CALIBRATION_METRICS", "ReadmeBlock", "begin_marker", "end_marker", "render_block", "update_readme",
-           "readme_blocks", "gate_figures_markdown", "README_BEGIN", "README_END"]
+           "readme_blocks", "load_block_records", "gate_figures_markdown", "README_BEGIN", "README_END"]
 
 
 @dataclass(frozen=True)
 class ReadmeBlock:
     """One generated README block: its ``name`` (the marker's), the ``experiment`` whose record it needs (None:
-    every quick record in the directory) and ``body(records, source) -> str`` the Markdown between the markers.
+    every quick record in the directory; a name ending in ``.json``: that file of the directory, read as JSON by
+    :func:`load_block_records`) and ``body(records, source) -> str`` the Markdown between the markers.
     A block that compares runs (``against`` > 0: how many other runs besides DIR) is written by
     ``body(records, source, others)``, ``others`` the list of (directory, records) from ``report DIR --against
     DIR2 [--against DIR3]``."""
@@ -53,6 +64,11 @@ class ReadmeBlock:
     body: Callable[..., str]
     about: str
     against: int = 0
+
+    @property
+    def reads_file(self) -> bool:
+        """Written from a command's summary file (``experiment`` is its name), not from benchmark records."""
+        return self.experiment is not None and self.experiment.endswith(".json")
 
 
 def begin_marker(name: str) -> str:
@@ -86,6 +102,10 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
     ReadmeBlock("physics-checks", "physics", physics_checks_markdown,
                 "the contact mechanics against the bonded-layer Hertz solution, symmetry and mesh convergence, "
                 "with targets and verdicts"),
+    ReadmeBlock("tactip-validation", VALIDATE_SUMMARY, _tactip_validation,
+                "the TacTip twin against labelled real frames: held-out marker RMS beside the static and ridge "
+                "baselines, displacement error and image statistics, with the goals' verdicts, from the "
+                "summary.json of `stereotactip validate`"),
 )}
 
 
@@ -100,6 +120,9 @@ def render_block(name: str, records: Records, source: str,
     block = BLOCKS.get(name)
     if block is None:
         raise ResultsError(f"README block {name!r}: unknown; known blocks: {', '.join(BLOCKS)}")
+    if block.reads_file and block.experiment not in records:
+        raise ResultsError(f"{source}: no {block.experiment}: the {name} block is written from a folder holding it "
+                           f"({block.about})")
     if block.experiment is not None and block.experiment not in records:
         raise ResultsError(f"{source}: no {block.experiment!r} record: the {name} block is written from a "
                            f"`stereotactip bench {block.experiment}` results directory")
@@ -109,6 +132,25 @@ def render_block(name: str, records: Records, source: str,
         raise ResultsError(f"README block {name}: {runs}: `{command}`")
     body = block.body(records, source, list(against)) if block.against else block.body(records, source)
     return "\n".join([begin_marker(name), "", body, "", end_marker(name)])
+
+
+def load_block_records(directory: Path) -> dict[str, dict]:
+    """What the blocks are written from in ``directory``: its benchmark records by experiment
+    (:func:`benchmarks.results.load_records`) and, for each block that reads a summary file, that file as JSON
+    under its name (``summary.json``) when the directory holds it."""
+    directory = Path(directory)
+    records = load_records(directory)
+    for name in sorted({b.experiment for b in BLOCKS.values() if b.reads_file}):
+        path = directory / name
+        if path.is_file():
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise ResultsError(f"{path}: not readable JSON ({exc})") from None
+            if not isinstance(data, dict):
+                raise ResultsError(f"{path}: expected a JSON object")
+            records[name] = data
+    return records
 
 
 _BEGIN = re.compile(r"^<!-- report:([a-z0-9-]+):begin\b.*-->$", re.M)
@@ -137,10 +179,10 @@ def update_readme(readme: Path, records_dir: Path, blocks: tuple[str, ...] = ("g
         text = readme.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ResultsError(f"README {readme}: unreadable ({type(exc).__name__})") from None
-    records = load_records(Path(records_dir))
+    records = load_block_records(Path(records_dir))
     against_dirs = [] if against_dir is None else [against_dir] if isinstance(against_dir, (str, Path)) \
         else list(against_dir)
-    against = [(str(d), load_records(Path(d))) for d in against_dirs]
+    against = [(str(d), load_block_records(Path(d))) for d in against_dirs]
     for name in blocks:
         begin, end = begin_marker(name), end_marker(name)
         if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):

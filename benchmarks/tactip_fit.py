@@ -52,14 +52,17 @@ from benchmarks.tactip_fit_appearance import fit_appearance
 from benchmarks.tactip_fit_skin import (PIN_ROTATION_RANGE, PIVOT_OFFSET_BRACKET_MM, PIVOT_OFFSET_SLOPE,  # noqa: F401
                                         SEARCH_FRAMES, TILT_PIVOTS_MM, _fit_tilt_pivot, fit_physics)
 
-__all__ = ["FitContext", "apply_params", "PIN_ROTATION_RANGE", "TILT_PIVOTS_MM", "FITTED_POSITION_PARAMETERS", "camera_vector",
+__all__ = ["FitContext", "apply_params", "PIN_ROTATION_RANGE", "TILT_PIVOTS_MM", "FITTED_POSITION_PARAMETERS",
+           "FITTED_POSITION_GROUPS", "camera_vector",
            "fit_layout", "fit_camera_reference", "fit_camera_all",
            "fit_physics", "fit_appearance", "CAM_KEYS", "LAYOUT_SEPARATIONS_MM"]
 
 CAM_KEYS = ("f_px", "cx_px", "cy_px", "k1", "k2", "k3", "x_mm", "y_mm", "air_gap_mm", "roll_deg")
-#: parameters that place the markers: pin spacing, the camera, tilt frame and mirror, bending, depth offset,
-#: pin rotation, tilt pivot
-FITTED_POSITION_PARAMETERS = 1 + len(CAM_KEYS) + 4 + 1 + 1
+#: parameters that place the markers, by group: pin spacing, the camera, the tap and skin (tilt frame and mirror,
+#: bending, depth offset), pin rotation, tilt pivot
+FITTED_POSITION_GROUPS = {"pin spacing": 1, "camera": len(CAM_KEYS), "tap/skin": 4, "pin rotation": 1,
+                          "tilt pivot": 1}
+FITTED_POSITION_PARAMETERS = sum(FITTED_POSITION_GROUPS.values())
 
 
 def apply_params(design: SensorDesign, cam: dict | None = None, twin: dict | None = None,

@@ -511,12 +511,13 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
     from the records it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
     figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
     fails here."""
-    from benchmarks.readme_blocks import BLOCKS, readme_blocks, render_block
+    from benchmarks.readme_blocks import BLOCKS, load_block_records, readme_blocks, render_block
 
     root = Path(__file__).resolve().parents[1]
     blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
-            "quick-experiments", "oracle-vs-estimated", "error-sources", "physics-checks"} <= set(blocks)
+            "quick-experiments", "oracle-vs-estimated", "error-sources", "physics-checks",
+            "tactip-validation"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # the quick run's gate figures, from the same kept records
             source, *other = re.findall(r"figures from `([^`]+)`", text)
@@ -525,9 +526,9 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
         for where in (source, *other):
             assert where.startswith("docs/records/"), f"README block {name}: {where} is not kept in docs/records/"
         assert len(other) == BLOCKS[name].against, f"README block {name} names {1 + len(other)} runs"
-        against = [(d, res.load_records(root / d)) for d in other]
+        against = [(d, load_block_records(root / d)) for d in other]
         command = source + "".join(f" --against {d}" for d in other)
-        assert render_block(name, res.load_records(root / source), source, against) == text, (
+        assert render_block(name, load_block_records(root / source), source, against) == text, (
             f"README block {name} differs from its records: rerun `stereotactip report {command} "
             f"--readme README.md --block {name}`")
 
@@ -682,6 +683,67 @@ def test_physics_checks_block_decides_each_verdict_from_the_record():
     del rec["tables"]["cases"]
     with pytest.raises(res.ResultsError, match="no force_depth and cases tables"):
         render_block("physics-checks", {"physics": rec}, "docs/records/x")
+
+
+def _validate_summary(twin: float = 2.17, stat: float = 4.91, ridge: float = 1.13, contrast: float = 116.0) -> dict:
+    """A small synthetic ``stereotactip validate`` summary (the keys the tactip-validation block reads)."""
+    def stat_row(real, tw):
+        return {"real": real, "twin": tw, "relative_difference": abs(tw - real) / real}
+
+    return {"design": "tactip331_fitted", "commit": "0123456789abcdef", "frames": 40, "train": 30, "held_out": 10,
+            "held_out_frames": [f"tactip331_tap_{k}.png" for k in range(4, 44, 4)], "reference": "tactip331_tap_5.png",
+            "held_out_rms_px": {"twin": 2.3, "twin_truth": 2.25, "static": 5.0, "ridge": 1.2, "displacement_twin": 1.98},
+            "held_out_rms_px_common_markers": {"twin": twin, "twin_truth": 2.18, "static": stat, "ridge": ridge},
+            "fitted_position_parameters": {"twin": 17, "static": 662, "ridge": 6620},
+            "fitted_position_parameter_groups": {"pin spacing": 1, "camera": 10, "tap/skin": 4, "pin rotation": 1,
+                                                 "tilt pivot": 1},
+            "image_stats_median": {"count": stat_row(330, 331), "radius_px": stat_row(4.87, 4.93),
+                                   "contrast": stat_row(contrast, 117.0), "spacing_px": stat_row(16.1, 16.3),
+                                   "background": stat_row(24.0, 24.0), "noise": stat_row(1.26, 1.28)},
+            "goals": {}, "per_frame": [], "seconds": 60.0}
+
+
+def test_tactip_validation_block_is_written_from_a_validate_summary(tmp_path):
+    """The tactip-validation block reads validate's summary.json as it stands: the held-out RMS table with the
+    fitted parameter counts, each goal decided from the numbers (twin ≤ 0.5× static, ≤ 1.5× ridge, the image
+    statistics within 10 %); `report DIR --readme README.md --block tactip-validation` writes it from a folder that
+    holds only the summary (no report pages there); a folder without one is a clear error."""
+    from benchmarks.readme_blocks import begin_marker, end_marker, render_block
+
+    text = render_block("tactip-validation", {"summary.json": _validate_summary()}, "docs/records/x")
+    lines = text.splitlines()
+    assert lines[2].startswith("TacTip twin vs real frames from the `validate` summary record in `docs/records/x` "
+                               "(commit 0123456789, design tactip331_fitted, 40 labelled frames: 30 train / 10 held "
+                               "out (tactip331_tap_4, tactip331_tap_8, …, tactip331_tap_40); reference tactip331_tap_5)")
+    rows = {r[0]: r[1:] for r in ([c.strip() for c in line.split("|")[1:-1]] for line in lines if line.startswith("| "))}
+    assert rows["twin, projected pin tips"] == ["17 (pin spacing, 10 camera, 4 tap/skin, pin rotation, tilt pivot)",
+                                                "2.18", "2.25"]
+    assert rows["twin, rendered → detected → identified"] == ["same", "2.17", "2.30"]
+    assert rows["(a) static: training mean per marker"] == ["662", "4.91", "5.00"]
+    assert rows["(b) ridge on [d, tx, ty, products, squares]"] == ["6620", "1.13", "1.20"]
+    assert ("Goal ≤ 0.5× static **met**, ≤ 1.5× ridge **not met**: through render → detect → identify the twin is "
+            "0.44× the static baseline and 1.92× the ridge") in text
+    assert "displacement error (against the reference tap) is 1.98 px." in text
+    assert ("count 331 / 330, radius 4.93 / 4.87 px, contrast 117 / 116, spacing 16.3 / 16.1 px, background 24 / 24, "
+            "noise 1.28 / 1.26 (all within 1.6 %); goal count, radius, contrast, spacing within 10 % **met**.") in text
+    other = render_block("tactip-validation", {"summary.json": _validate_summary(twin=1.6, contrast=140.0)}, "x")
+    assert "Goal ≤ 0.5× static **met**, ≤ 1.5× ridge **met**" in other and "within 10 % **not met**" in other
+    assert "Goal ≤ 0.5× static **not met**" in render_block(
+        "tactip-validation", {"summary.json": _validate_summary(stat=4.0)}, "x")
+    run = tmp_path / "val"
+    run.mkdir()
+    (run / "summary.json").write_text(json.dumps(_validate_summary()))
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# T\n\n{begin_marker('tactip-validation')}\nold\n{end_marker('tactip-validation')}\n")
+    assert main(["report", str(run), "--readme", str(readme), "--block", "tactip-validation"]) == 0
+    assert "old" not in readme.read_text() and "| (a) static: training mean per marker | 662 | 4.91 |" in readme.read_text()
+    assert sorted(p.name for p in run.iterdir()) == ["summary.json"]
+    (run / "summary.json").unlink()
+    assert main(["report", str(run), "--readme", str(readme), "--block", "tactip-validation"]) == 2
+    with pytest.raises(res.ResultsError, match="no summary.json"):
+        render_block("tactip-validation", {}, "x")
+    with pytest.raises(res.ResultsError, match="not a `stereotactip validate` summary"):
+        render_block("tactip-validation", {"summary.json": {"frames": 2}}, "x")
 
 
 def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy, tmp_path, monkeypatch):

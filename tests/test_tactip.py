@@ -302,6 +302,25 @@ def test_ridge_baseline_recovers_a_quadratic_pose_model():
         assert np.abs(b["static"][k] - real[i]).max() > 0.5   # the static baseline cannot follow the pose
 
 
+def test_validate_goals_are_decided_from_the_held_out_rms_and_the_image_statistics():
+    """The twin within half the static baseline and 1.5× the ridge; the image statistics within 10 %: a statistic
+    the twin matches exactly meets it, one without a value does not. The summary's twin parameter groups add up to
+    the fitted position parameters."""
+    from benchmarks.tactip_fit import FITTED_POSITION_GROUPS, FITTED_POSITION_PARAMETERS
+    from benchmarks.tactip_validate import GOAL_IMAGE_KEYS, _goals
+
+    stats = {k: {"real": 10.0, "twin": 10.0, "relative_difference": 0.0} for k in GOAL_IMAGE_KEYS}
+    goals = _goals({"twin": 2.0, "static": 4.0, "ridge": 1.4}, stats)
+    assert goals == {"twin_le_half_static": True, "twin_within_1p5_ridge": True, "image_stats_within_10pct": True}
+    goals = _goals({"twin": 2.01, "static": 4.0, "ridge": 1.3}, {**stats, "contrast": {**stats["contrast"],
+                                                                                      "relative_difference": 0.11}})
+    assert not any(goals.values())
+    assert not _goals({"twin": None, "static": 4.0, "ridge": 1.3},
+                      {**stats, "count": {"real": None, "twin": 3.0, "relative_difference": None}})[
+        "image_stats_within_10pct"]
+    assert sum(FITTED_POSITION_GROUPS.values()) == FITTED_POSITION_PARAMETERS == 17
+
+
 # ----- real frames --------------------------------------------------------------------------
 
 needs_real = pytest.mark.skipif(not HAVE_REAL, reason=f"real TacTip frames not found in {DATA}")
@@ -381,6 +400,8 @@ def test_validate_runs_every_real_frame_through_the_executor(tmp_path):
                  "--skip-unlabelled", "--no-progress", "--workers", "2"]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["frames"] == 40 and s["held_out"] == 10 and len(s["per_frame"]) == 40
+    assert len(s["commit"]) == 40 and sum(s["fitted_position_parameter_groups"].values()) == \
+        s["fitted_position_parameters"]["twin"]
     assert len(list(out.glob("overlay_*.png"))) == 40
     rms = s["held_out_rms_px"]
     assert all(math.isfinite(rms[k]) for k in ("twin", "static", "ridge"))
