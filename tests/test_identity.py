@@ -76,29 +76,32 @@ def test_no_wrong_id_in_an_occluded_first_frame_read_from_rest(name, seed):
 
 
 def test_a_first_frame_with_its_centre_hidden_is_read_from_rest():
-    """circular217_dome with the 15 % of its markers nearest the centre hidden (turned 1 deg against the rest
-    pattern, bulged 8 %): ring coding anchors a circular pattern by its first three rings and identifies
-    nothing; read from the rest pattern (read_from_rest) every visible marker whose design neighbours are
-    all visible gets its id, and none is wrong."""
-    from benchmarks.experiments.identification import _complete_neighbourhood, rest_px
+    """circular217_dome with the 15 % of its markers nearest the centre hidden (turned 2 deg against the rest
+    pattern, bulged 15 %): ring coding anchors a circular pattern by its first three rings and identifies
+    nothing. Every visible marker then lies 0.23 separations or more from its rest position, beyond the
+    frame-to-frame map's bootstrap gate, so the rest pattern as it stands starts nothing either; brought
+    onto the view by an affine fit first (read_from_rest), every visible marker gets its id and none is
+    wrong."""
+    from benchmarks.experiments.identification import rest_px
     from pipeline.vision.dtrc import read_from_rest
 
     design = DESIGNS["circular217_dome"]
     rest = rest_px(design)
     centre = rest.mean(axis=0)
-    t = np.radians(1.0)
+    t = np.radians(2.0)
     r = rest - centre
-    uv = centre + (r * (1 + 0.08 * np.exp(-(np.hypot(*r.T) / (0.5 * np.hypot(*r.T).max())) ** 2))[:, None]) @ \
+    uv = centre + (r * (1 + 0.15 * np.exp(-(np.hypot(*r.T) / (0.5 * np.hypot(*r.T).max())) ** 2))[:, None]) @ \
         np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]).T
     gone = np.argsort(np.hypot(*(uv - centre).T))[:int(round(0.15 * len(uv)))]
     keep = np.setdiff1d(np.arange(len(uv)), gone)
     pts, truth = uv[keep], keep
     coding = code_rings(_blobs(pts), design)
     assert np.count_nonzero(coding.ids >= 0) == 0
+    as_it_stands = code_rings(_blobs(pts), design, previous=(rest, np.arange(len(rest), dtype=np.int64))).ids
+    assert np.count_nonzero(as_it_stands >= 0) == 0
     ids = read_from_rest(_blobs(pts), design, coding, (rest, np.arange(len(rest), dtype=np.int64))).ids
     assert _wrong(ids, truth) == 0
-    full = _complete_neighbourhood(design, gone)
-    assert set(full.tolist()) <= set(ids[ids >= 0].tolist())
+    assert np.count_nonzero(ids >= 0) == len(pts)
 
 
 @settings(derandomize=True, database=None, max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])

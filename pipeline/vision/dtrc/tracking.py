@@ -76,8 +76,41 @@ def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
     n = min(len(blobs), _marker_count(design))
     if n < 4 or np.count_nonzero(coding.ids >= 0) >= REST_BELOW * n:
         return coding
-    again = code_rings(blobs, design, previous=rest)
+    again = code_rings(blobs, design, previous=(_aligned(rest[0], blobs.xy_px), rest[1]))
     return again if np.count_nonzero(again.ids >= 0) >= REST_BELOW * n else coding
+
+
+#: The rest pattern is brought onto a first frame by an affine map fitted to mutual nearest pairs within
+#: this fraction of the blobs' median spacing, refitted this many times (the rest pattern as it stands
+#: when fewer than REST_ALIGN_MIN pairs are found). A press bulges the pattern by up to ~15 % and a
+#: calibration turns it by a degree or two, so with the pattern's centre hidden every visible marker can
+#: lie beyond the frame-to-frame map's bootstrap gate from its rest position (0.15 separations) and the
+#: map finds nowhere to start; pairs within half a spacing do not jump to a neighbour's blob.
+REST_ALIGN_GATE = 0.5
+REST_ALIGN_ROUNDS = 5
+REST_ALIGN_MIN = 6
+
+
+def _aligned(rest_xy: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """``rest_xy`` (N, 2) moved by the affine map that best carries it onto the blobs ``pts`` (ICP on
+    mutual nearest pairs within :data:`REST_ALIGN_GATE` spacings)."""
+    rest_xy = np.asarray(rest_xy, np.float64)
+    pts = np.asarray(pts, np.float64)
+    if len(pts) < REST_ALIGN_MIN:
+        return rest_xy
+    tree = cKDTree(pts)
+    spacing = float(np.median(tree.query(pts, k=2)[0][:, 1]))
+    cur = rest_xy
+    for _ in range(REST_ALIGN_ROUNDS):
+        d, j = tree.query(cur)
+        back = cKDTree(cur).query(pts)[1]
+        pair = (d < REST_ALIGN_GATE * spacing) & (back[j] == np.arange(len(cur)))
+        if np.count_nonzero(pair) < REST_ALIGN_MIN:
+            break
+        A = np.column_stack([rest_xy[pair], np.ones(np.count_nonzero(pair))])
+        M, *_ = np.linalg.lstsq(A, pts[j[pair]], rcond=None)
+        cur = np.column_stack([rest_xy, np.ones(len(rest_xy))]) @ M
+    return cur
 
 
 class DTRCTracker:
