@@ -102,12 +102,12 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
                 against=2),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
-                "wrong ids and coverage per defect condition and pattern"),
+                "wrong ids and coverage per defect condition and pattern", doc="docs/IDENTIFICATION.md"),
     ReadmeBlock("tracking-identity", "tracking", _tracking_identity,
                 "DTRC vs nearest-neighbour ids per letter motion, with the frames' physics verdicts"),
     ReadmeBlock("physics-checks", "physics", physics_checks_markdown,
                 "the contact mechanics against the bonded-layer Hertz solution, symmetry and mesh convergence, "
-                "with targets and verdicts"),
+                "with targets and verdicts", doc="docs/CONTACT_MODEL.md"),
     ReadmeBlock("tactip-validation", VALIDATE_SUMMARY, _tactip_validation,
                 "the TacTip twin against labelled real frames: held-out marker RMS beside the static and ridge "
                 "baselines, displacement error and image statistics, with the goals' verdicts, from the "
