@@ -18,7 +18,9 @@ of the estimated calibration alone (``error-sources``, three ``bench patterns,ga
 estimated --error-sources SOURCE`` runs: ``report DIR --against DIR2 --against DIR3``). Each block's first line
 names the results directories it was written from; the records behind the README's headline blocks are kept in
 ``docs/records/`` so that
-``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them.
+``tests/test_benchmarks.py`` can write each block again and fail when the README has drifted from them. A block
+may stand in a document under ``docs/`` instead of the README (a long section moved there: ``ReadmeBlock.doc``,
+which its begin marker names); the test reads README.md and every ``docs/*.md``, each block once.
 
 The blocks' renderers are :mod:`benchmarks.readme_render` (and :mod:`benchmarks.readme_error_sources`,
 :mod:`benchmarks.readme_physics`); this module holds the markers, the registry and the writing of the README.
@@ -57,13 +59,15 @@ class ReadmeBlock:
     :func:`load_block_records`) and ``body(records, source) -> str`` the Markdown between the markers.
     A block that compares runs (``against`` > 0: how many other runs besides DIR) is written by
     ``body(records, source, others)``, ``others`` the list of (directory, records) from ``report DIR --against
-    DIR2 [--against DIR3]``."""
+    DIR2 [--against DIR3]``. ``doc`` is the file the block stands in, relative to the repository root (the README,
+    or a document under ``docs/`` that a long section was moved to); its begin marker names it."""
 
     name: str
     experiment: str | None
     body: Callable[..., str]
     about: str
     against: int = 0
+    doc: str = "README.md"
 
     @property
     def reads_file(self) -> bool:
@@ -72,9 +76,11 @@ class ReadmeBlock:
 
 
 def begin_marker(name: str) -> str:
-    """The line that opens block ``name`` (the gate figures keep their original, shorter command)."""
+    """The line that opens block ``name``, naming the file it stands in (the gate figures keep their original,
+    shorter command)."""
     against = "".join(f" --against DIR{k + 2}" for k in range(BLOCKS[name].against if name in BLOCKS else 0))
-    command = (f"stereotactip report DIR{against} --readme README.md"
+    doc = BLOCKS[name].doc if name in BLOCKS else "README.md"
+    command = (f"stereotactip report DIR{against} --readme {doc}"
                + ("" if name == "gate-figures" else f" --block {name}"))
     return f"<!-- report:{name}:begin (written by `{command}`; do not edit) -->"
 
@@ -96,12 +102,12 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
                 against=2),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
-                "wrong ids and coverage per defect condition and pattern"),
+                "wrong ids and coverage per defect condition and pattern", doc="docs/IDENTIFICATION.md"),
     ReadmeBlock("tracking-identity", "tracking", _tracking_identity,
                 "DTRC vs nearest-neighbour ids per letter motion, with the frames' physics verdicts"),
     ReadmeBlock("physics-checks", "physics", physics_checks_markdown,
                 "the contact mechanics against the bonded-layer Hertz solution, symmetry and mesh convergence, "
-                "with targets and verdicts"),
+                "with targets and verdicts", doc="docs/CONTACT_MODEL.md"),
     ReadmeBlock("tactip-validation", VALIDATE_SUMMARY, _tactip_validation,
                 "the TacTip twin against labelled real frames: held-out marker RMS beside the static and ridge "
                 "baselines, displacement error and image statistics, with the goals' verdicts, from the "

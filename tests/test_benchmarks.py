@@ -510,11 +510,19 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
     coverage, tracking, oracle vs estimated, each error source alone) are generated blocks: each is written again
     from the records it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
     figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
-    fails here."""
+    fails here. A block may stand in README.md or in a document under docs/ (the file its marker names), once."""
     from benchmarks.readme_blocks import BLOCKS, load_block_records, readme_blocks, render_block
 
     root = Path(__file__).resolve().parents[1]
-    blocks = readme_blocks((root / "README.md").read_text(encoding="utf-8"))
+    blocks, where_is = {}, {}
+    for doc in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        text = doc.read_text(encoding="utf-8")
+        for name, block in readme_blocks(text).items():
+            rel = doc.relative_to(root).as_posix()
+            assert name not in blocks and text.count(f"<!-- report:{name}:begin") == 1, (
+                f"README block {name} stands more than once ({where_is.get(name, rel)}, {rel})")
+            assert rel == BLOCKS[name].doc, f"README block {name} stands in {rel}, its marker names {BLOCKS[name].doc}"
+            blocks[name], where_is[name] = block, rel
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
             "quick-experiments", "oracle-vs-estimated", "error-sources", "physics-checks",
             "tactip-validation"} <= set(blocks)
@@ -530,7 +538,7 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
         command = source + "".join(f" --against {d}" for d in other)
         assert render_block(name, load_block_records(root / source), source, against) == text, (
             f"README block {name} differs from its records: rerun `stereotactip report {command} "
-            f"--readme README.md --block {name}`")
+            f"--readme {where_is[name]} --block {name}`")
 
 
 def test_readme_block_is_written_from_its_experiment_only(tmp_path):
