@@ -151,6 +151,8 @@ class _Mesh:
 
 def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
     """Tetrahedral mesh of the skin + gel disc (see module notes). Rest positions in the sensor frame."""
+    if spec.rim not in RIMS:
+        raise PhysicsError(f"MeshSpec.rim must be one of {', '.join(RIMS)}, got {spec.rim!r}")
     T, G, R = design.skin.thickness_mm, design.optics.gel_thickness_mm, design.gel.radius_mm
     edge = spec.edge_drop_mm > 0
     ax = _axis(spec.fine_mm, spec.fine_half_mm, spec.growth, R, spec.core_mm, spec.core_half_mm,
@@ -172,11 +174,9 @@ def build_mesh(design: SensorDesign, spec: MeshSpec) -> _Mesh:
     used = np.broadcast_to(used_xy[:, :, None], gid.shape)
     gid[used] = np.arange(int(used.sum()))
     nodes = np.column_stack([ax[I[used]], ax[J[used]], zl[K[used]]])
-    if spec.rim not in RIMS:
-        raise PhysicsError(f"MeshSpec.rim must be one of {', '.join(RIMS)}, got {spec.rim!r}")
     lateral = ~interior[I[used], J[used]] & (K[used] > 0)
     roller = lateral if spec.rim == "roller" else None
-    pinned = (K[used] == 0) | (lateral if roller is None else False)
+    pinned = (K[used] == 0) | (lateral & (spec.rim == "clamped"))
     # Kuhn split of each kept cell; with ``mirrored_split`` mirrored in every other cell along each axis: the
     # neighbours' shared faces still agree (a Kuhn cube's face diagonals are unchanged by a reflection normal
     # to that face), and with the parity counted from the node on the axis the mesh is its own mirror image

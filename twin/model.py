@@ -62,6 +62,8 @@ ELASTIC3D_STABLE_NEO_HOOKEAN = 1   # MuJoCo flex ``elastic3d``: 0 = St Venant–
 ROLLER_SLACK_M = 1e-9          # a roller rim vertex's x-y range about its rest position (MeshSpec.rim = "roller")
 CONTACT_TIMECONST_STEPS = 2.0  # contact solref time constant in physics steps (the smallest MuJoCo allows)
 CONTACT_DAMPRATIO = 0.7
+CONTACT_SOLIMP = [0.99, 0.999, 1e-5, 0.5, 2.0]   # impedance of contacts, the stick ties and the roller rim's limits:
+                                                # 0.99 -> 0.999 over 0.01 mm of penetration
 _FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
 MODEL_CACHE_SIZE = 4         # compiled models kept per process (a press sweep re-presses one design/indenter at
                              # several yaws; compiling costs ~0.5-0.9 s of a ~3 s press, a copy ~0.01 s)
@@ -158,7 +160,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
                 # a roller rim holds the vertex on the mount's wall: x and y limited to their rest values
                 jnt.limited, jnt.range = True, [-ROLLER_SLACK_M, ROLLER_SLACK_M]
                 jnt.solref_limit = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]   # as stiff as a contact
-                jnt.solimp_limit = [0.99, 0.999, 1e-5, 0.5, 2.0]
+                jnt.solimp_limit = CONTACT_SOLIMP
         b.mass = materials.MASS_SCALE * volumetric_mass_factor(spec) * dt * dt * kd[n]
         b.inertia = [1e-15] * 3
         b.explicitinertial = True
@@ -227,7 +229,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
                 e.active = False
                 e.data[1] = 1.0       # q_vertex = c0 + 1 * q_indenter (c0: the anchor, set by twin.stick)
                 e.solref = [STICK_TIMECONST_STEPS * dt, STICK_DAMPRATIO]
-                e.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+                e.solimp = CONTACT_SOLIMP
     else:
         body = mjspec.worldbody.add_body(name="indenter", mocap=True)
     g = body.add_geom(type=mj.mjtGeom.mjGEOM_HFIELD, hfieldname="indenter",
@@ -235,7 +237,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
     g.contype, g.conaffinity, g.condim, g.priority = 1, 2, condim, 1
     g.friction = [friction, 0.005, 0.0001]
     g.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
-    g.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+    g.solimp = CONTACT_SOLIMP
     n_surface_spheres = 0
     if spec.face_contact:
         cell = spec.core_mm or spec.fine_mm
@@ -246,7 +248,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
             gs.contype, gs.conaffinity, gs.condim, gs.priority = _BIT_SPHERES, _BIT_FACES, condim, 1
             gs.friction = [friction, 0.005, 0.0001]
             gs.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
-            gs.solimp = [0.99, 0.999, 1e-5, 0.5, 2.0]
+            gs.solimp = CONTACT_SOLIMP
             gs.mass, gs.group = 0.0, 3
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")   # MuJoCo's note on flexes without equality constraints
