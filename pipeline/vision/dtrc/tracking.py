@@ -160,7 +160,8 @@ class DTRCTracker:
         rc = code_rings(right, self.design, previous=None if prev is None else prev[1], history=hist[1])
         self.read_from_rest = False
         if prev is None and self.rest is not None:
-            lc2, rc2 = (self._from_rest(b, c, v) for v, (b, c) in enumerate(((left, lc), (right, rc))))
+            lc2 = read_from_rest(left, self.design, lc, self.rest[0])
+            rc2 = read_from_rest(right, self.design, rc, self.rest[1])
             self.read_from_rest = lc2 is not lc or rc2 is not rc
             lc, rc = lc2, rc2
         self.last_codings = (lc, rc)
@@ -171,9 +172,6 @@ class DTRCTracker:
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     __call__ = update
-
-    def _from_rest(self, blobs: Blobs, coding: RingCoding, view: int) -> RingCoding:
-        return read_from_rest(blobs, self.design, coding, self.rest[view])
 
     def forget(self, ids: np.ndarray) -> None:
         """Drop ``ids`` from the markers the next frame is given as certain in the previous one: a
