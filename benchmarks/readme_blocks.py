@@ -35,7 +35,6 @@ no report pages for such a block (they are the command's own: ``validate`` write
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +45,7 @@ from benchmarks.readme_physics import physics_checks_markdown
 from benchmarks.readme_render import (CALIBRATION_METRICS, VALIDATE_SUMMARY, Records, _identification_coverage,
                                       _oracle_vs_estimated, _quick_experiments, _tactip_validation, _tracking_identity,
                                       _twin_speed, gate_figures_markdown)
-from benchmarks.results import ResultsError, load_records
+from benchmarks.results import ResultsError, load_records, read_json_object
 
 __all__ = ["BLOCKS", "CALIBRATION_METRICS", "ReadmeBlock", "begin_marker", "end_marker", "render_block", "update_readme",
            "readme_blocks", "load_block_records", "gate_figures_markdown", "README_BEGIN", "README_END"]
@@ -149,13 +148,7 @@ def load_block_records(directory: Path) -> dict[str, dict]:
     for name in sorted({b.experiment for b in BLOCKS.values() if b.reads_file}):
         path = directory / name
         if path.is_file():
-            try:
-                data = json.loads(path.read_text(encoding="utf-8"))
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise ResultsError(f"{path}: not readable JSON ({exc})") from None
-            if not isinstance(data, dict):
-                raise ResultsError(f"{path}: expected a JSON object")
-            records[name] = data
+            records[name] = read_json_object(path)
     return records
 
 

@@ -32,6 +32,7 @@ __all__ = [
     "execute",
     "write_record",
     "load_record",
+    "read_json_object",
     "load_records",
     "git_commit",
     "versions",
@@ -161,14 +162,20 @@ def write_record(record: Mapping[str, Any], out_dir: Path) -> Path:
     return path
 
 
-def load_record(path: Path) -> dict[str, Any]:
+def read_json_object(path: Path) -> dict[str, Any]:
+    """The JSON object in ``path``; a :class:`ResultsError` naming the file when it is unreadable or not an object."""
     path = Path(path)
     try:
-        record = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ResultsError(f"result file {path}: not readable JSON ({exc})") from None
-    if not isinstance(record, dict):
+    if not isinstance(data, dict):
         raise ResultsError(f"result file {path}: expected a JSON object")
+    return data
+
+
+def load_record(path: Path) -> dict[str, Any]:
+    record = read_json_object(path)
     missing = [k for k in REQUIRED_KEYS if k not in record]
     if missing:
         raise ResultsError(f"result file {path}: missing key {missing[0]!r}")
