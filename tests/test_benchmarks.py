@@ -694,11 +694,14 @@ def test_physics_checks_block_decides_each_verdict_from_the_record():
 
 
 def _validate_summary(twin: float = 2.17, stat: float = 4.91, ridge: float = 1.13, contrast: float = 116.0) -> dict:
-    """A small synthetic ``stereotactip validate`` summary (the keys the tactip-validation block reads)."""
+    """A small synthetic ``stereotactip validate`` summary (the keys the tactip-validation block reads), its goals
+    decided by validate's own rule."""
+    from benchmarks.tactip_validate import _goals
+
     def stat_row(real, tw):
         return {"real": real, "twin": tw, "relative_difference": abs(tw - real) / real}
 
-    return {"design": "tactip331_fitted", "commit": "0123456789abcdef", "frames": 40, "train": 30, "held_out": 10,
+    summary = {"design": "tactip331_fitted", "commit": "0123456789abcdef", "frames": 40, "train": 30, "held_out": 10,
             "held_out_frames": [f"tactip331_tap_{k}.png" for k in range(4, 44, 4)], "reference": "tactip331_tap_5.png",
             "held_out_rms_px": {"twin": 2.3, "twin_truth": 2.25, "static": 5.0, "ridge": 1.2, "displacement_twin": 1.98},
             "held_out_rms_px_common_markers": {"twin": twin, "twin_truth": 2.18, "static": stat, "ridge": ridge},
@@ -708,13 +711,15 @@ def _validate_summary(twin: float = 2.17, stat: float = 4.91, ridge: float = 1.1
             "image_stats_median": {"count": stat_row(330, 331), "radius_px": stat_row(4.87, 4.93),
                                    "contrast": stat_row(contrast, 117.0), "spacing_px": stat_row(16.1, 16.3),
                                    "background": stat_row(24.0, 24.0), "noise": stat_row(1.26, 1.28)},
-            "goals": {}, "per_frame": [], "seconds": 60.0}
+            "per_frame": [], "seconds": 60.0}
+    summary["goals"] = _goals(summary["held_out_rms_px_common_markers"], summary["image_stats_median"])
+    return summary
 
 
 def test_tactip_validation_block_is_written_from_a_validate_summary(tmp_path):
     """The tactip-validation block reads validate's summary.json as it stands: the held-out RMS table with the
-    fitted parameter counts, each goal decided from the numbers (twin ≤ 0.5× static, ≤ 1.5× ridge, the image
-    statistics within 10 %); `report DIR --readme README.md --block tactip-validation` writes it from a folder that
+    fitted parameter counts, each goal's verdict as validate decided it (twin ≤ 0.5× static, ≤ 1.5× ridge, the
+    image statistics within 10 %); `report DIR --readme README.md --block tactip-validation` writes it from a folder that
     holds only the summary (no report pages there); a folder without one is a clear error."""
     from benchmarks.readme_blocks import begin_marker, end_marker, render_block
 
