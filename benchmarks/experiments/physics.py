@@ -157,7 +157,7 @@ def run(ctx: Context) -> Result:
     cases = _cases(design)
     bar = ctx.bar(total=len(cases) + len(resolutions), desc="physics")
     fd = _force_depth(cases, depths, layer, bar)
-    sym = _report_force_depth(out, design, fd)
+    sym = _report_force_depth(out, fd)
     conv = _convergence(design, resolutions, conv_depth, bar)
     bar.close()
     prod = _report_convergence(out, fd, conv)
@@ -219,7 +219,6 @@ class _ForceDepth:
     rows: list = field(default_factory=list)      # the "force_depth" table, one row per case and depth
     times: list = field(default_factory=list)     # seconds per press of the twin's own set-ups
     frames: list = field(default_factory=list)    # each pressed frame's validity
-    series: dict = field(default_factory=dict)    # tag -> _press_series results (the truths)
     cases: list = field(default_factory=list)     # the "cases" table: each case's ν and mesh (MeshSpec fields)
 
 
@@ -244,7 +243,6 @@ def _force_depth(cases: list[_Case], depths: list[float], layer: _Layer, bar) ->
                             "press_s": secs / len(depths),
                             **dict(zip(("centre_lateral_mm", "mirror_disagreement_mm"), _mirror_errors(d, tr)))})
             fd.frames.append(v)
-        fd.series[tag] = res
         bar.update()
     return fd
 
@@ -261,7 +259,7 @@ class _Symmetry(NamedTuple):
     mirror_mirrored: float
 
 
-def _report_force_depth(out: Result, design, fd: _ForceDepth) -> _Symmetry:
+def _report_force_depth(out: Result, fd: _ForceDepth) -> _Symmetry:
     """Force ratios, contact radii and symmetry of the depth series as metrics; returns the symmetry."""
     rows = fd.rows
 
@@ -277,15 +275,19 @@ def _report_force_depth(out: Result, design, fd: _ForceDepth) -> _Symmetry:
     out.metric("force_ratio_uniform_max", float(max(r["ratio"] for r in rows if r["case"] == "uniform")), "1")
     out.metric("force_ratio_uniform045_median", med("uniform045", "ratio"), "1")
     out.metric("contact_radius_ratio_uniform_median", contact_ratio("uniform"), "1")
+    def deepest_symmetry(tag):   # the centre marker's sideways motion and mirrored markers' disagreement, deepest press
+        last = [r for r in rows if r["case"] == tag][-1]
+        return last["centre_lateral_mm"], last["mirror_disagreement_mm"]
+
     design_rows = [r for r in rows if r["case"] == "design"]   # the twin's mesh for an indenter on the axis
     out.metric("design_force_3mm_n", float(design_rows[-1]["force_n"]), "N")
-    centre, mirror = _mirror_errors(design, fd.series["design"][-1][2])
+    centre, mirror = deepest_symmetry("design")
     out.metric("centre_marker_lateral_mm", centre, "mm")
     out.metric("mirror_disagreement_max_mm", mirror, "mm")
-    centre_d, mirror_d = _mirror_errors(design, fd.series["design_default"][-1][2])
+    centre_d, mirror_d = deepest_symmetry("design_default")
     out.metric("centre_marker_lateral_mm_default", centre_d, "mm")
     out.metric("mirror_disagreement_max_mm_default", mirror_d, "mm")
-    centre_m, mirror_m = _mirror_errors(design, fd.series["design_mirrored"][-1][2])
+    centre_m, mirror_m = deepest_symmetry("design_mirrored")
     out.metric("centre_marker_lateral_mm_mirrored", centre_m, "mm")
     out.metric("mirror_disagreement_max_mm_mirrored", mirror_m, "mm")
     out.metric("force_ratio_uniform_median_mirrored", med("uniform_mirrored", "ratio"), "1")
@@ -301,7 +303,7 @@ def _report_force_depth(out: Result, design, fd: _ForceDepth) -> _Symmetry:
                float(max(r["ratio"] for r in rows if r["case"] == "uniform_nodal_layered")), "1")
     out.metric("contact_radius_ratio_uniform_nodal_layered_median", contact_ratio("uniform_nodal_layered"), "1")
     out.metric("design_force_3mm_n_nodal", float([r for r in rows if r["case"] == "design_nodal"][-1]["force_n"]), "N")
-    centre_n, mirror_n = _mirror_errors(design, fd.series["design_nodal"][-1][2])
+    centre_n, mirror_n = deepest_symmetry("design_nodal")
     out.metric("centre_marker_lateral_mm_nodal", centre_n, "mm")
     out.metric("mirror_disagreement_max_mm_nodal", mirror_n, "mm")
     nod = [r for r in rows if r["case"].endswith("nodal")]
