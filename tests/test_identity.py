@@ -104,6 +104,55 @@ def test_a_first_frame_with_its_centre_hidden_is_read_from_rest():
     assert np.count_nonzero(ids >= 0) == len(pts)
 
 
+def _occluded_first_frame(name, seed):
+    """The identification benchmark's occlusion_15_rest view of ``name`` drawn from ``seed``: (blobs, true id
+    per blob, the ids whose design neighbours are all visible, the rest pattern in px)."""
+    from benchmarks.experiments.identification import (BASE_JITTER_SEP, REST_TURN_DEG, _complete_neighbourhood,
+                                                       add_defects, rest_px, view_px)
+
+    design = DESIGNS[name]
+    rng = np.random.default_rng(seed)
+    uv = view_px(design, rng, rot_deg=rng.uniform(-REST_TURN_DEG, REST_TURN_DEG), jitter_sep=BASE_JITTER_SEP,
+                 perspective=False)
+    pts, truth, gone = add_defects(uv, rng, occlusion=0.15)
+    return pts, truth, _complete_neighbourhood(design, gone), rest_px(design)
+
+
+def test_a_first_frame_ring_coding_reads_is_completed_from_rest():
+    """square121 with a 15 % patch hidden at its rim: ring coding identifies over 90 % of the view but leaves
+    open a marker beside the patch whose design neighbours are all visible. The rest pattern's reading
+    gives every blob ring coding identified the same id and identifies that marker too, so it is taken:
+    every marker with a complete neighbourhood is identified, none wrong."""
+    from pipeline.vision.dtrc import read_from_rest
+
+    design = DESIGNS["square121"]
+    pts, truth, complete, rest = _occluded_first_frame("square121", 58)
+    coding = code_rings(_blobs(pts), design)
+    coded = coding.ids >= 0
+    assert np.count_nonzero(coded) >= 0.9 * len(pts)
+    assert not set(complete.tolist()) <= set(coding.ids[coded].tolist())
+    ids = read_from_rest(_blobs(pts), design, coding, (rest, np.arange(len(rest), dtype=np.int64))).ids
+    assert np.array_equal(ids[coded], coding.ids[coded])
+    assert _wrong(ids, truth) == 0
+    assert set(complete.tolist()) <= set(ids[ids >= 0].tolist())
+
+
+@pytest.mark.parametrize("shift", [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.5, 0.0)])
+def test_a_first_frame_read_from_a_wrong_rest_pattern_keeps_ring_codings_ids(shift):
+    """The same view with the rest pattern off by a whole separation (or half of one: a calibration wrong by
+    that much): the rest reading adds nothing ring coding had not certified, and no id is wrong."""
+    from benchmarks.experiments.identification import PX_PER_SEP
+    from pipeline.vision.dtrc import read_from_rest
+
+    design = DESIGNS["square121"]
+    pts, truth, _, rest = _occluded_first_frame("square121", 58)
+    coding = code_rings(_blobs(pts), design)
+    shifted = rest + PX_PER_SEP * np.asarray(shift)
+    ids = read_from_rest(_blobs(pts), design, coding, (shifted, np.arange(len(rest), dtype=np.int64))).ids
+    assert np.array_equal(ids, coding.ids)
+    assert _wrong(ids, truth) == 0
+
+
 @settings(derandomize=True, database=None, max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(name=designs, seed=seeds)
 def test_no_wrong_pair_in_pressed_stereo_views_with_different_defects(name, seed):

@@ -24,9 +24,11 @@ Conditions:
   contiguous patch; at the rim half the time). ``coverage_complete_neighbourhood`` counts only the
   visible markers whose design neighbours (within 1.5 separations) are all visible.
 * ``occlusion_15_rest``: the same patch in a sensor's first frame read as the runner reads one
-  (:func:`pipeline.vision.dtrc.read_from_rest`): ring coding, then, where it leaves more than a
-  tenth unidentified, coded again with the rest pattern (where the calibration puts the undeformed
-  skin's markers) as the previous frame. The view is the rest pattern bulged as above and turned by
+  (:func:`pipeline.vision.dtrc.read_from_rest`): ring coding, then, where it leaves a blob
+  unidentified, coded again with the rest pattern (where the calibration puts the undeformed skin's
+  markers) as the previous frame; that reading replaces ring coding's where ring coding left more than
+  a tenth unidentified, and elsewhere only extends it (the same id on every blob ring coding
+  identified, and more of them). The view is the rest pattern bulged as above and turned by
   at most +-2 deg (a calibration's error; the cameras are fixed to the skin, so the pattern does not
   turn by the +-15 deg the other conditions draw), without the perspective term (the rest pattern is
   projected through the same cameras).

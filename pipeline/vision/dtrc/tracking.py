@@ -16,9 +16,9 @@ from pipeline.vision.dtrc.coding import RingCoding, code_rings
 from pipeline.vision.dtrc.ring_codes import _marker_count
 from pipeline.vision.identity.reacquire import REACQUIRE_FRAMES
 
-#: A first frame's view is coded again from the rest pattern when ring coding identifies fewer than
-#: this fraction of its blobs (the lattice registration's threshold, ``SEED_BELOW``), and the rest
-#: pattern's reading is taken only when it identifies at least this fraction.
+#: A first frame's view that ring coding identifies to fewer than this fraction of its blobs (the
+#: lattice registration's threshold, ``SEED_BELOW``) takes the rest pattern's reading when that reading
+#: identifies at least this fraction; above it, the rest reading may only extend ring coding's.
 REST_BELOW = 0.9
 
 
@@ -66,18 +66,37 @@ def match_stereo(left: Blobs, right: Blobs, design: SensorDesign) -> MarkerMatch
 def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
                    rest: tuple[np.ndarray, np.ndarray]) -> RingCoding:
     """A first frame's coding of one view, coded again from the rest pattern ``rest`` ((N, 2) px where
-    the calibration puts the undeformed skin's markers, their ids) when ring coding left more than a
-    tenth of the blobs (or slots) unidentified (:data:`REST_BELOW`). The rest pattern's reading is
-    taken only when it explains the view, identifying all but a tenth of the blobs (or slots); a
-    partial reading does not replace ring coding's. A calibration off by a whole separation can still
-    explain a view (half a pattern read one step towards its hidden side: 67 of 67 blobs, all wrong,
-    in both views alike), which this test cannot see: the runner's stereo check drops such a frame
-    (:data:`pipeline.runner.REST_DOUBT`, told by :attr:`DTRCTracker.read_from_rest`)."""
+    the calibration puts the undeformed skin's markers, their ids) wherever ring coding left a blob (or
+    slot) unidentified.
+
+    * Ring coding left more than a tenth unidentified (:data:`REST_BELOW`; e.g. a circular pattern
+      with its centre hidden, which ring coding anchors by its first three rings): the rest pattern's
+      reading is taken when it explains the view, identifying all but a tenth of the blobs (or slots);
+      a partial reading does not replace ring coding's.
+    * Ring coding read the view but left some markers unidentified (next to an occluded patch, where
+      a marker's neighbourhood reaches across ring coding's withdrawn pieces): the rest reading is
+      taken only when it *extends* ring coding's, giving every blob ring coding identified the same id
+      and identifying more. Two readings that disagree on a blob leave ring coding's as it is.
+
+    A calibration off by a whole separation can still explain a view (half a pattern read one step
+    towards its hidden side: 67 of 67 blobs, all wrong, in both views alike), which the first test
+    cannot see: the runner's stereo check drops such a frame (:data:`pipeline.runner.REST_DOUBT`, told
+    by :attr:`DTRCTracker.read_from_rest`). Under the second test such a reading contradicts ring
+    coding's certain ids and is refused."""
     n = min(len(blobs), _marker_count(design))
-    if n < 4 or np.count_nonzero(coding.ids >= 0) >= REST_BELOW * n:
+    have = int(np.count_nonzero(coding.ids >= 0))
+    if n < 4 or have >= n:
         return coding
     again = code_rings(blobs, design, previous=(_aligned(rest[0], blobs.xy_px), rest[1]))
-    return again if np.count_nonzero(again.ids >= 0) >= REST_BELOW * n else coding
+    got = int(np.count_nonzero(again.ids >= 0))
+    if got < REST_BELOW * n:
+        return coding
+    if have < REST_BELOW * n:
+        return again
+    coded = coding.ids >= 0
+    if got <= have or np.any(again.ids[coded] != coding.ids[coded]):
+        return coding
+    return again
 
 
 #: The rest pattern is brought onto a first frame by an affine map fitted to mutual nearest pairs within
