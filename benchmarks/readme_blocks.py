@@ -8,7 +8,8 @@ A generated block in the README is the text between two marker lines::
 
 and :data:`BLOCKS` names what each block is made of: the gate figures of a quick run (``gate-figures``, every
 metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``quick-experiments``, one row per
-experiment: the paper's figures and claims beside the run's), the twin's speed and fidelity table
+experiment: the paper's figures and claims beside the run's) and a full run's (``full-suite``, the same with each
+experiment's wall time), the twin's speed and fidelity table
 (``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
 from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
 record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), the TacTip twin
@@ -43,7 +44,7 @@ from typing import Callable, Sequence
 from benchmarks.readme_error_sources import error_sources_markdown
 from benchmarks.readme_physics import physics_checks_markdown
 from benchmarks.readme_render import (CALIBRATION_METRICS, VALIDATE_SUMMARY, Records, _identification_coverage,
-                                      _oracle_vs_estimated, _quick_experiments, _tactip_validation, _tracking_identity,
+                                      _full_suite, _oracle_vs_estimated, _quick_experiments, _tactip_validation, _tracking_identity,
                                       _twin_speed, gate_figures_markdown)
 from benchmarks.results import ResultsError, load_records, read_json_object
 
@@ -92,6 +93,9 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
     ReadmeBlock("gate-figures", None, gate_figures_markdown, "every metric the CI gate guards, from a quick run"),
     ReadmeBlock("quick-experiments", None, _quick_experiments,
                 "one row per experiment of a quick run: the paper's figures and claims beside this run's"),
+    ReadmeBlock("full-suite", None, _full_suite,
+                "one row per experiment of a full run (`stereotactip bench all`): wall time, invalid twin cells, "
+                "the paper's figures and claims beside the run's"),
     ReadmeBlock("oracle-vs-estimated", None, _oracle_vs_estimated,
                 "the calibration-sensitive figures of an oracle and an estimated quick run side by side",
                 against=1),

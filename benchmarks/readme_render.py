@@ -66,23 +66,31 @@ def gate_figures_markdown(records: Records, source: str) -> str:
     return "\n".join(lines)
 
 
-# ----- quick-experiments: one row per experiment of a quick run --------------------------------------
+# ----- quick-experiments / full-suite: one row per experiment of a run ----------------------------------
 
-def _quick_experiments(records: Records, source: str) -> str:
-    """One row per experiment of a quick run: its designs, the twin cells that failed the physics checks, and
-    the paper's figures and claims (or the twin's goals) beside this run's, with the verdict: the same
-    facts as the report's summary and "Paper figure vs this run" tables, taken from the same helpers."""
-    recs = {n: r for n, r in sorted(records.items()) if r.get("quick")}
+def _experiments_table(records: Records, source: str, quick: bool) -> str:
+    """One row per experiment of a quick (``quick``) or full run: its designs, the twin cells that failed the
+    physics checks, and the paper's figures and claims (or the twin's goals) beside this run's, with the
+    verdict: the same facts as the report's summary and "Paper figure vs this run" tables, taken from the
+    same helpers. A full run's table also gives each experiment's wall time."""
+    kind = "quick" if quick else "full"
+    recs = {n: r for n, r in sorted(records.items()) if bool(r.get("quick")) == quick}
     if not recs:
-        raise ResultsError(f"{source}: no quick records: the experiments table comes from a --quick run")
+        raise ResultsError(f"{source}: no {kind} records: the experiments table comes from a "
+                           f"{'--quick ' if quick else ''}run of `stereotactip bench all`")
     commits = sorted({str(r.get("commit", "unknown"))[:10] for r in recs.values()})
     modes = sorted({(r.get("calibration") or {}).get("mode", "oracle") for r in recs.values()})
     seeds = sorted({str(r.get("seed")) for r in recs.values()})
-    lines = [f"Quick-run records in `{source}` (commit {', '.join(commits)}, calibration {', '.join(modes)}, "
-             f"seed {', '.join(seeds)}); each claim is the paper's (or, for `twin`, the twin's goal), each "
-             "figure the experiment's own record:", "",
-             "| experiment | designs | invalid twin cells | paper / goal | this run | verdict |",
-             "| --- | --- | --- | --- | --- | --- |"]
+    head = (f"{kind.capitalize()}-run records in `{source}` (commit {', '.join(commits)}, calibration "
+            f"{', '.join(modes)}, seed {', '.join(seeds)})")
+    if not quick:
+        wall = sum(float(r.get("wall_time_s") or 0.0) for r in recs.values())
+        head += f", {_minutes(wall)} of experiment wall time in all"
+    lines = [head + "; each claim is the paper's (or, for `twin`, the twin's goal), each figure the "
+             "experiment's own record:", "",
+             "| experiment | designs | " + ("" if quick else "wall time | ") +
+             "invalid twin cells | paper / goal | this run | verdict |",
+             "| --- | --- | " + ("" if quick else "--- | ") + "--- | --- | --- | --- |"]
     for name, r in recs.items():
         paper, run, verdict = [], [], []
         for metric, value, measured, unit, where in paper_figures(r):
@@ -97,8 +105,25 @@ def _quick_experiments(records: Records, source: str) -> str:
         if r.get("status") != "ok":
             run.append(f"status {r.get('status')}")
         cells = ["<br>".join(_md_escape(x) for x in col) or "—" for col in (paper, run, verdict)]
-        lines.append(f"| {name} | {_md_escape(designs_used(r))} | {invalid_cells(r)} | " + " | ".join(cells) + " |")
+        wall = "" if quick else f"{_minutes(float(r.get('wall_time_s') or 0.0))} | "
+        lines.append(f"| {name} | {_md_escape(designs_used(r))} | {wall}{invalid_cells(r)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _minutes(seconds: float) -> str:
+    """A wall time as the README writes it: 42 s, 3 min 05 s."""
+    seconds = int(round(seconds))
+    return f"{seconds} s" if seconds < 60 else f"{seconds // 60} min {seconds % 60:02d} s"
+
+
+def _quick_experiments(records: Records, source: str) -> str:
+    """One row per experiment of a quick run (:func:`_experiments_table`)."""
+    return _experiments_table(records, source, quick=True)
+
+
+def _full_suite(records: Records, source: str) -> str:
+    """One row per experiment of a full run, with its wall time (:func:`_experiments_table`)."""
+    return _experiments_table(records, source, quick=False)
 
 
 # ----- oracle-vs-estimated: the accuracy a user gets ------------------------------------------------

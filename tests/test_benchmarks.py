@@ -565,6 +565,28 @@ def test_readme_block_is_written_from_its_experiment_only(tmp_path):
         update_readme(readme, run)
 
 
+def test_full_suite_block_is_written_from_full_records_only(tmp_path):
+    """The full-suite block takes a full run's records (quick ones are refused, and a quick run's block leaves
+    full records out) and gives each experiment its wall time from its record, and the run's total."""
+    from benchmarks.readme_blocks import render_block
+
+    root = Path(__file__).resolve().parents[1]
+    quick = res.load_records(root / "docs/records/quick-experiments")
+    with pytest.raises(res.ResultsError, match="no full records"):
+        render_block("full-suite", quick, "q")
+    full = {}
+    for k, (name, rec) in enumerate(sorted(quick.items())[:3]):
+        full[name] = {**rec, "quick": False, "wall_time_s": 30.0 + 100.0 * k}
+    text = render_block("full-suite", full, "f")
+    assert "| experiment | designs | wall time | invalid twin cells |" in text
+    rows = [line for line in text.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert [r.split(" | ")[0][2:] for r in rows] == sorted(full)
+    assert [r.split(" | ")[2] for r in rows] == ["30 s", "2 min 10 s", "3 min 50 s"]
+    assert "6 min 30 s of experiment wall time in all" in text
+    with pytest.raises(res.ResultsError, match="no quick records"):
+        render_block("quick-experiments", full, "f")
+
+
 def test_readme_block_of_two_runs_needs_the_other_run(tmp_path):
     """The oracle-vs-estimated block compares two directories: written without `--against` it is a clear
     error; a run against itself shows its chosen figures with no difference, under each run's calibration."""
