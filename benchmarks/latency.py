@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from pipeline.design import load_design
+from pipeline.priority import frame_priority
 from pipeline.runner import Reconstructor
 from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
@@ -77,7 +78,8 @@ def _busy_processes(n: int) -> list:
 
 def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome"), n_frames: int = 200,
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
-                n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0) -> dict:
+                n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0,
+                nice: int | None = None) -> dict:
     """Time the whole runner per stage on synthetic frames (the runner holds BLAS, OpenMP and
     OpenCV at one thread per frame: :mod:`pipeline.threads`).
 
@@ -89,6 +91,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     n_distinct_frames : distinct synthetic frames rendered (press depths 0-3 mm), cycled through
     background_procs : processes spinning on a core each while the frames are timed (a stated
         background load; 0 = none)
+    nice : the frames are processed at this niceness (:func:`pipeline.priority.frame_priority`; None: the
+        process's own); the spinning processes keep theirs
 
     Returns
     -------
@@ -108,31 +112,33 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
                     "designs": {}}
     load = _busy_processes(int(background_procs))
     try:
-        for name in design_names:
-            design = load_design(name)
-            calib = nominal_calibration(design)
-            depths = np.linspace(0.0, 3.0, n_distinct_frames)
-            frames = [synth_stereo_frame(design, calib, gaussian_press_markers(design, float(d), sigma_mm=4.0),
-                                         rng=rng, index=k) for k, d in enumerate(depths)]
-            rec = Reconstructor(design, calib, refraction=refraction)
-            stages: dict[str, list[float]] = {}
-            matched = []
-            reference = []
-            rec.process(frames[0])  # warm-up: caches, first-call imports
-            reference_workload_ms()
-            for k in tqdm(range(n_frames), desc=f"latency {name}", disable=not progress, leave=False):
-                reference.append(reference_workload_ms())     # interleaved: the machine's speed at this moment
-                res = rec.process(frames[k % len(frames)])
-                for stage, ms in res.timings_ms.items():
-                    stages.setdefault(stage, []).append(ms)
-                matched.append(res.n_matched)
-            result["designs"][name] = {
-                "markers": design.marker_count,
-                "matched_min": int(min(matched)), "matched_median": float(np.median(matched)),
-                "stages": {s: _stats(v) for s, v in stages.items()},
-                "reference_ms": _stats(reference),
-                "total_over_reference": float(np.median(stages["total"]) / np.median(reference)),
-            }
+        with frame_priority(nice) as niceness:
+            result["niceness"] = niceness
+            for name in design_names:
+                design = load_design(name)
+                calib = nominal_calibration(design)
+                depths = np.linspace(0.0, 3.0, n_distinct_frames)
+                frames = [synth_stereo_frame(design, calib, gaussian_press_markers(design, float(d), sigma_mm=4.0),
+                                             rng=rng, index=k) for k, d in enumerate(depths)]
+                rec = Reconstructor(design, calib, refraction=refraction)
+                stages: dict[str, list[float]] = {}
+                matched = []
+                reference = []
+                rec.process(frames[0])  # warm-up: caches, first-call imports
+                reference_workload_ms()
+                for k in tqdm(range(n_frames), desc=f"latency {name}", disable=not progress, leave=False):
+                    reference.append(reference_workload_ms())     # interleaved: the machine's speed at this moment
+                    res = rec.process(frames[k % len(frames)])
+                    for stage, ms in res.timings_ms.items():
+                        stages.setdefault(stage, []).append(ms)
+                    matched.append(res.n_matched)
+                result["designs"][name] = {
+                    "markers": design.marker_count,
+                    "matched_min": int(min(matched)), "matched_median": float(np.median(matched)),
+                    "stages": {s: _stats(v) for s, v in stages.items()},
+                    "reference_ms": _stats(reference),
+                    "total_over_reference": float(np.median(stages["total"]) / np.median(reference)),
+                }
     finally:
         cv2.setNumThreads(threads)
         for proc in load:

@@ -192,6 +192,44 @@ def test_reconstruct_skips_an_unreadable_frame_and_names_it(recording, tmp_path,
     assert [f["index"] for f in summary["per_frame"]] == [0, 2] and summary["stopped"] is None
 
 
+def test_reconstruct_runs_its_frames_at_the_niceness_asked_for(recording, tmp_path, monkeypatch, capsys):
+    """`reconstruct --nice N` processes the frames at niceness N and restores the caller's afterwards; a
+    niceness the OS refuses is a clear error (exit 2), not a silent run at the old priority. (Run in a thread
+    of its own: niceness is per thread, so the test process keeps its own.)"""
+    import threading
+
+    from pipeline.priority import current_niceness
+
+    seen = []
+    real = Reconstructor.process
+
+    def process(self, frame):
+        seen.append(current_niceness())
+        return real(self, frame)
+
+    def run(out, nice):
+        result = {}
+        t = threading.Thread(target=lambda: result.update(
+            rc=main(["reconstruct", str(recording / "frames"), "--calib", str(recording / "calib.yaml"),
+                     "--out", str(out), "--nice", str(nice)]), after=current_niceness()))
+        t.start()
+        t.join()
+        return result
+
+    monkeypatch.setattr(Reconstructor, "process", process)
+    before = current_niceness()
+    result = run(tmp_path / "o", before + 2)
+    assert result["rc"] == 0 and seen == [before + 2] * 3
+    if os.geteuid() == 0:                   # lowering it back needs the privilege
+        assert result["after"] == before
+
+    def refuse(*_):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "setpriority", refuse)
+    assert run(tmp_path / "o2", -10)["rc"] == 2 and "CAP_SYS_NICE" in capsys.readouterr().err
+
+
 def test_interrupted_reconstruction_still_writes_its_summary(recording, tmp_path):
     design = load_design("hexagon127")
     calib = nominal_calibration(design)

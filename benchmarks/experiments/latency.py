@@ -45,8 +45,9 @@ def run(ctx: Context) -> Result:
     names = tuple(ctx.param("designs", DESIGNS))
     n_frames = int(ctx.param("n_frames", 200, quick=40))
     load = int(ctx.param("background_procs", 0))
+    nice = ctx.param("nice", None)
     raw = run_latency(names, n_frames, ctx.out_dir / "latency_raw", seed=ctx.seed, progress=ctx.progress,
-                      background_procs=load)
+                      background_procs=load, nice=None if nice is None else int(nice))
     out = Result(designs=[load_design(n) for n in names])
     medians, p95s, matched, ratios, refs = [], [], [], [], []
     rows = []
@@ -75,7 +76,8 @@ def run(ctx: Context) -> Result:
     out.notes.append(f"Machine: {m.get('processor', '?')}, {m.get('cpu_count', '?')} logical CPUs (shared), "
                      f"OpenCV {m.get('opencv', '?')} and BLAS/OpenMP at 1 thread per frame (pipeline.threads); "
                      f"background load: {load} process(es) spinning on a core each "
-                     "(--param background_procs=N); "
+                     f"(--param background_procs=N); frames processed at niceness {raw.get('niceness', '?')} "
+                     "(--param nice=N); "
                      f"refraction '{raw.get('refraction', '?')}'; "
                      f"{n_frames} frames per design after one warm-up frame; synthetic frames (pipeline.io.synthetic).")
     out.findings.append(Finding(f"the pipeline reconstructs a frame in about {PAPER_MS:.0f} ms",

@@ -161,13 +161,15 @@ def _calibrate_refraction(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     from pipeline.design import load_design
     from pipeline.batch import reconstruct
+    from pipeline.priority import frame_priority
     from pipeline.runner import Reconstructor
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)
     rec = Reconstructor(design, calib, refraction=args.refraction, n_gel=args.n_gel, tracker=args.tracker)
-    summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
-                          preview_every=args.preview_every)
+    with frame_priority(args.nice):
+        summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
+                              preview_every=args.preview_every)
     line = f"{summary['frames']} frame(s), median {summary['median_total_ms']:.1f} ms/frame"
     if summary["skipped"]:
         line += f"; {len(summary['skipped'])} unreadable frame(s) skipped: " + \
@@ -207,4 +209,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tracker", choices=("dtrc", "nn"), default="dtrc")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--preview-every", type=int, default=0, help="also write mesh + PNG every k-th frame")
+    p.add_argument("--nice", type=int, default=None, metavar="N",
+                   help="process frames at niceness N (e.g. -10: a larger share of a loaded machine; below the "
+                        "current niceness needs root or CAP_SYS_NICE)")
     p.set_defaults(func=_reconstruct)
