@@ -524,7 +524,7 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
             assert rel == BLOCKS[name].doc, f"README block {name} stands in {rel}, its marker names {BLOCKS[name].doc}"
             blocks[name], where_is[name] = block, rel
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
-            "quick-experiments", "oracle-vs-estimated", "error-sources", "physics-checks",
+            "quick-experiments", "full-suite", "oracle-vs-estimated", "error-sources", "physics-checks",
             "tactip-validation"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # the quick run's gate figures, from the same kept records

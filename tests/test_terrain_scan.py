@@ -213,9 +213,10 @@ def test_twin_tap_lands_on_the_relief_in_the_global_frame(tmp_path):
 @pytest.mark.render
 def test_crowded_himalaya_tap_gives_fewer_markers_but_none_mislabelled():
     """Himalaya tap 1: the 0.5 mm skin wraps a ridge and the 217 pins converge to 0.59 pitch; in one
-    view the rings cannot all be peeled. Measured: 110/217 identified, 58 pairs refused by the stereo
-    check, 0 mislabelled (before the stereo check and ring prediction: 98 'matched', 80 wrong).
-    The promise checked: whatever is reported is right; the count is a floor against regression."""
+    view the rings cannot all be peeled. Measured: 208/217 identified, 0 mislabelled (204 before a first
+    frame's rest reading could extend ring coding's; 110 when this test was written; before the stereo
+    check and ring prediction: 98 'matched', 80 wrong). The promise checked:
+    whatever is reported is right; the count is a floor against regression."""
     from benchmarks.terrain import _design
     from pipeline.runner import Reconstructor
     from twin import indenters, render, simulate
@@ -234,7 +235,7 @@ def test_crowded_himalaya_tap_gives_fewer_markers_but_none_mislabelled():
     res = Reconstructor(design, render.true_calibration(design)).process(frame)
     err = np.linalg.norm(res.corrected.xyz_mm - truth.marker_xyz_mm[res.corrected.ids], axis=1)
     assert np.all(err < MISLABEL_MM), f"mislabelled ids {res.corrected.ids[err >= MISLABEL_MM].tolist()}"
-    assert res.n_matched >= 0.4 * design.marker_count
+    assert res.n_matched >= 0.9 * design.marker_count
 
 
 def test_resume_recomputes_taps_whose_inputs_changed_or_whose_file_is_corrupt(tmp_path, capsys):
