@@ -81,8 +81,9 @@ def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
     A calibration off by a whole separation can still explain a view (half a pattern read one step
     towards its hidden side: 67 of 67 blobs, all wrong, in both views alike), which the first test
     cannot see: the runner's stereo check drops such a frame (:data:`pipeline.runner.REST_DOUBT`, told
-    by :attr:`DTRCTracker.read_from_rest`). Under the second test such a reading contradicts ring
-    coding's certain ids and is refused."""
+    by :attr:`DTRCTracker.read_from_rest`). Under the second test such a reading may add nothing that
+    contradicts ring coding's certain ids (measured with the rest pattern a whole or half separation off:
+    it adds nothing at all, ``tests/test_identity.py``)."""
     n = min(len(blobs), _marker_count(design))
     have = int(np.count_nonzero(coding.ids >= 0))
     if n < 4 or have >= n:
