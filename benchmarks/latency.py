@@ -76,6 +76,37 @@ def _busy_processes(n: int) -> list:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
+def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generator, n_distinct_frames: int,
+                 progress: bool) -> dict:
+    """One design's timing in :func:`run_latency`: ``n_frames`` synthetic press frames through a fresh
+    runner, each preceded by the reference job, after one warm-up frame."""
+    from tqdm import tqdm
+
+    calib = nominal_calibration(design)
+    depths = np.linspace(0.0, 3.0, n_distinct_frames)
+    frames = [synth_stereo_frame(design, calib, gaussian_press_markers(design, float(d), sigma_mm=4.0),
+                                 rng=rng, index=k) for k, d in enumerate(depths)]
+    rec = Reconstructor(design, calib, refraction=refraction)
+    stages: dict[str, list[float]] = {}
+    matched = []
+    reference = []
+    rec.process(frames[0])  # warm-up: caches, first-call imports
+    reference_workload_ms()
+    for k in tqdm(range(n_frames), desc=f"latency {design.name}", disable=not progress, leave=False):
+        reference.append(reference_workload_ms())     # interleaved: the machine's speed at this moment
+        res = rec.process(frames[k % len(frames)])
+        for stage, ms in res.timings_ms.items():
+            stages.setdefault(stage, []).append(ms)
+        matched.append(res.n_matched)
+    return {
+        "markers": design.marker_count,
+        "matched_min": int(min(matched)), "matched_median": float(np.median(matched)),
+        "stages": {s: _stats(v) for s, v in stages.items()},
+        "reference_ms": _stats(reference),
+        "total_over_reference": float(np.median(stages["total"]) / np.median(reference)),
+    }
+
+
 def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome"), n_frames: int = 200,
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
                 n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0,
@@ -99,8 +130,6 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     dict with, per design, median / p95 / mean / max per stage and in total (ms), matched-marker counts,
     and the machine description.
     """
-    from tqdm import tqdm
-
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     rng = np.random.default_rng(seed)
@@ -115,30 +144,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
         with frame_priority(nice) as niceness:
             result["niceness"] = niceness
             for name in design_names:
-                design = load_design(name)
-                calib = nominal_calibration(design)
-                depths = np.linspace(0.0, 3.0, n_distinct_frames)
-                frames = [synth_stereo_frame(design, calib, gaussian_press_markers(design, float(d), sigma_mm=4.0),
-                                             rng=rng, index=k) for k, d in enumerate(depths)]
-                rec = Reconstructor(design, calib, refraction=refraction)
-                stages: dict[str, list[float]] = {}
-                matched = []
-                reference = []
-                rec.process(frames[0])  # warm-up: caches, first-call imports
-                reference_workload_ms()
-                for k in tqdm(range(n_frames), desc=f"latency {name}", disable=not progress, leave=False):
-                    reference.append(reference_workload_ms())     # interleaved: the machine's speed at this moment
-                    res = rec.process(frames[k % len(frames)])
-                    for stage, ms in res.timings_ms.items():
-                        stages.setdefault(stage, []).append(ms)
-                    matched.append(res.n_matched)
-                result["designs"][name] = {
-                    "markers": design.marker_count,
-                    "matched_min": int(min(matched)), "matched_median": float(np.median(matched)),
-                    "stages": {s: _stats(v) for s, v in stages.items()},
-                    "reference_ms": _stats(reference),
-                    "total_over_reference": float(np.median(stages["total"]) / np.median(reference)),
-                }
+                result["designs"][name] = _time_design(load_design(name), n_frames, refraction, rng,
+                                                       n_distinct_frames, progress)
     finally:
         cv2.setNumThreads(threads)
         for proc in load:
