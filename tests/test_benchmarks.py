@@ -799,3 +799,22 @@ def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy,
     assert cells[2:6] == ["1", "1.5", "0.5", "mm"]
     (tmp_path / "empty").mkdir()
     assert main(["report", str(oracle), "--against", str(tmp_path / "empty")]) == 2
+
+
+def test_the_physics_reference_job_presses_an_elastic_flex():
+    """The reference a press is timed against is the kind of job a press is: one 3-D elastic flex, its base
+    pinned, pressed by a sphere through contacts, on the discrete integrator and the CG solver, and it
+    moves the flex (the sphere's 1.5 mm step reaches into the grid's top vertices)."""
+    import mujoco as mj
+
+    from benchmarks import twin_bench
+
+    ms = twin_bench.physics_reference_ms(repeats=2)
+    assert 0 < ms < 60_000
+    model, data = twin_bench._PHYSICS_REFERENCE
+    assert model.nflex == 1 and model.flex_dim[0] == 3
+    assert model.opt.integrator == mj.mjtIntegrator.mjINT_DISCRETE and model.opt.solver == mj.mjtSolver.mjSOL_CG
+    assert data.ncon > 0
+    x, y, z = data.flexvert_xpos.T
+    under = np.flatnonzero(np.hypot(x, y) < 1e-6)
+    assert z[under].max() < 0.007        # the top face's centre (rest z 7.5 mm) pressed in by ~1.5 mm

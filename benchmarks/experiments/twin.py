@@ -46,7 +46,7 @@ from benchmarks.registry import Context, Finding, Result, register
         "face_contact_sharp_press_s": "s", "face_contact_sharp_penetration_max_mm": "mm",
         "axis_mesh_press_s": "s", "axis_mesh_penetration_max_mm": "mm", "axis_mesh_apex_beyond_tip_mm": "mm",
         "axis_mesh_sharp_press_s": "s", "axis_mesh_sharp_penetration_max_mm": "mm",
-        "reference_ms_median": "ms", "press_over_reference": "1", "frame_over_reference": "1",
+        "reference_ms_median": "ms", "physics_reference_ms_min": "ms", "press_over_reference": "1", "frame_over_reference": "1",
     },
     requires=("benchmarks.twin_bench", "twin.physics", "twin.render"),
 )
@@ -55,18 +55,25 @@ def run(ctx: Context) -> Result:
     from pipeline.design import load_design
     from benchmarks.twin_bench import run_twin_bench
 
-    raw = run_twin_bench(ctx.out_dir / "twin_bench", quick=ctx.quick)
+    raw = run_twin_bench(ctx.out_dir / "twin_bench", quick=ctx.quick, progress=ctx.progress)
     ref_ms = float(raw["reference_ms_median"])
     out = Result(designs=[load_design(raw["design"])])
     out.metric("press_s_median", raw["press_s_median"], "s")
     out.metric("model_build_s_median", raw["model_build_s_median"], "s")
     frame_ms = raw.get("frame_ms_median")
     out.metric("frame_ms_median", float("nan") if frame_ms is None else frame_ms, "ms")
-    # machine-independent speed (what the CI gate holds): times in units of a fixed job timed between the presses
-    # and between the frames (benchmarks.latency.reference_workload_ms)
+    # machine-independent speed (what the CI gate holds): the fastest press in units of the fastest run of a
+    # fixed MuJoCo job timed between the presses (benchmarks.twin_bench.physics_reference_ms), the fastest frame
+    # in units of the fastest run of the pipeline's reference job timed between the frames
+    # (benchmarks.latency.reference_workload_ms). Fastest against fastest: a process sharing the cores only adds
+    # time, to either, so the minima are the uncontended speeds and their ratio holds on a loaded machine.
     out.metric("reference_ms_median", ref_ms, "ms")
-    out.metric("press_over_reference", 1e3 * raw["press_s_median"] / ref_ms, "1")
-    out.metric("frame_over_reference", (float("nan") if frame_ms is None else frame_ms) / ref_ms, "1")
+    phys_ms = float(raw["physics_reference_ms_min"])
+    out.metric("physics_reference_ms_min", phys_ms, "ms")
+    out.metric("press_over_reference", 1e3 * raw["press_s_min"] / phys_ms, "1")
+    frame_min = raw.get("frame_ms_min")
+    out.metric("frame_over_reference", float("nan") if frame_min is None
+               else frame_min / float(raw["frame_reference_ms_min"]), "1")
     out.metric("gap_max_mm", raw["gap_max_mm"], "mm")
     out.metric("gap_rms_mm", raw["gap_rms_mm"], "mm")
     out.metric("settle_converged_fraction", float(np.mean(raw["settle_converged"])), "1")
