@@ -385,22 +385,112 @@ def test_no_wrong_id_where_a_prediction_is_extrapolated_towards_a_press_tip(seed
 # blob (first four) or its outer neighbour's pin, slot 210 read as 198 (last two). Nothing competes for
 # the slot there, and the local spacing is ~0.5-0.8 of the median, so the blob sits about where a
 # displaced pin would: known wrong ids, kept here so that a rule which withdraws them shows.
-_MISSING_SLOT_VIEWS = [(1301021084, "hexagon217_sep180", 2.2615, 0.3363, 0.0270),
-                       (2161590097, "hexagon217_sep180", 1.0517, 0.3463, 0.0419),
+_MISSING_SLOT_VIEWS = [(2161590097, "hexagon217_sep180", 1.0517, 0.3463, 0.0419),
                        (2361457184, "square121", 2.4059, 0.3268, 0.0726),
-                       (2884193572, "hexagon217_sep180", 2.4579, 0.2771, 0.0947),
                        (594499511, "hexagon217_sep180", 2.1096, 0.4038, 0.0614),
                        (1858549753, "hexagon217_sep180", 2.1746, 0.4301, 0.0785)]
+# views of a later search of the same space (4,000 draws, 2,755 in scope), found with the placements
+# anchored half-way out: a spurious blob 0.01-0.33 separations from the prediction of a slot near the tip
+# (its marker missing, or present 0.32-0.36 off), with every or all but two of the slot's neighbours
+# identified (the last: one of the views that ring coding alone left without any id)
+_NEAR_PREDICTION_VIEWS = [(1218274663, "square121", 1.1246, 0.3664, 0.0937),
+                          (498893891, "hexagon127", 1.2151, 0.1206, 0.0271),
+                          (4090610520, "hexagon217_sep180", 1.3734, 0.1955, 0.0996)]
+# one more such view, in which ring coding read 174 of 196 markers, one wrong: the placements anchored
+# half-way out (``register_seed(spread=True)``, tried below 90 %) certify 182, and that reading, the
+# largest, leaves the slot open. The slot's case is not settled by a rule, only outread.
+_MISSING_SLOT_VIEW_OUTREAD = (2884193572, "hexagon217_sep180", 2.4579, 0.2771, 0.0947)
+
+
+def test_a_view_whose_wrong_id_a_larger_reading_leaves_out():
+    _assert_no_wrong_id_in_scope(*_MISSING_SLOT_VIEW_OUTREAD)
+
+
+# and one in which the spurious blob took slot 207 (its marker missing) with two of the slot's six
+# neighbours identified
+_THINLY_HELD_VIEW = (1301021084, "hexagon217_sep180", 2.2615, 0.3363, 0.0270)
+
+
+def test_an_interior_id_held_by_two_identified_neighbours_is_withdrawn():
+    """An interior marker needs three of its immediate design neighbours identified to keep its id
+    (``HELD_BY``): the spurious blob's slot is left open, with that reason, and the rest of the view
+    is identified."""
+    from pipeline.vision.identity import REASONS
+    from pipeline.vision.identity.constants import R_FEW
+
+    _assert_no_wrong_id_in_scope(*_THINLY_HELD_VIEW)
+    seed, name, *_ = _THINLY_HELD_VIEW
+    coding = code_rings(_blobs(_pressed_view_with_defects(*_THINLY_HELD_VIEW)[0]), DESIGNS[name])
+    assert REASONS[R_FEW] == dict(zip(coding.unmatched_ids.tolist(), coding.unmatched_reasons))[207]
 
 
 @pytest.mark.xfail(strict=True, reason="known wrong ids: a missing (or crowded) slot near a sharp press tip "
                    "taken by a blob 0.4-0.75 separations off its marker, with nothing competing for it")
-@pytest.mark.parametrize("seed, name, sigma, lateral, rate", _MISSING_SLOT_VIEWS)
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate", [*_MISSING_SLOT_VIEWS, *_NEAR_PREDICTION_VIEWS])
 def test_no_wrong_id_where_a_slot_near_the_tip_lost_its_marker(seed, name, sigma, lateral, rate):
     """The property above on views a wider search drew: no wrong id."""
     pts, truth, in_scope = _pressed_view_with_defects(seed, name, sigma, lateral, rate)
     assert in_scope
     assert _wrong(code_rings(_blobs(pts), DESIGNS[name]).ids, truth) == 0
+
+
+_STEREO_KEPT = pytest.mark.xfail(strict=True, reason="known wrong pairs: the spurious blob stands where the other "
+                                 "view's marker's rays meet the skin, within the stereo check's gates")
+
+
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate",
+                         [*_MISSING_SLOT_VIEWS, _MISSING_SLOT_VIEW_OUTREAD, _THINLY_HELD_VIEW,
+                          *(pytest.param(*v, marks=_STEREO_KEPT) for v in _NEAR_PREDICTION_VIEWS[:2]),
+                          _NEAR_PREDICTION_VIEWS[2]])
+def test_a_wrong_id_of_one_view_does_not_survive_the_stereo_check(seed, name, sigma, lateral, rate):
+    """Each view above paired with the other camera's view of the same press (its blobs complete): a
+    wrong id of one view pairs with the other view's marker of that id, whose rays miss the first
+    view's blob or meet it outside the gel (2 mm beyond the rest depth in two of the five), or the
+    other view leaves the id open. The reconstruction's stereo check keeps no wrong pair. Not so in
+    two of the later search's views (xfail): their spurious blob, 0.01-0.33 separations from the
+    slot's prediction, pairs with the other view's marker within the gates."""
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import gaussian_press_markers
+    from pipeline.runner import Reconstructor
+
+    design = DESIGNS[name]
+    calib = nominal_calibration(design)
+    pts, truth, _ = _pressed_view_with_defects(seed, name, sigma, lateral, rate)
+    assert _wrong(code_rings(_blobs(pts), design).ids, truth) <= 1
+    right = project_through_stack(gaussian_press_markers(design, 5.0, sigma_mm=sigma, lateral=lateral), calib,
+                                  design)[1]
+    kept = Reconstructor(design, calib)._stereo_check(match_stereo(_blobs(pts), _blobs(right), design))[0]
+    owner = {tuple(p): int(t) for p, t in zip(pts.tolist(), truth.tolist())}
+    assert len(kept.ids) >= 0.8 * np.count_nonzero(truth >= 0)
+    assert all(owner[tuple(p)] == i for i, p in zip(kept.ids.tolist(), kept.left_px.tolist()))
+    np.testing.assert_array_equal(kept.right_px, right[kept.ids])
+
+
+# views of the same space (defect seed, pattern, sigma, lateral, rate) in which the sharp press crowds the
+# middle of the view so much that ring peeling fails there and no placement anchored on the central blobs
+# is certified: nothing was identified in them (0 of 208, 112 and 196 present markers)
+_CROWDED_MIDDLE_VIEWS = [(3, "hexagon217_sep180", 1.0517, 0.3463, 0.0419),
+                         (1, "square121", 2.4059, 0.3268, 0.0726),
+                         (1, "hexagon217_sep180", 2.4579, 0.2771, 0.0947)]
+
+
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate", _CROWDED_MIDDLE_VIEWS)
+def test_a_view_crowded_in_the_middle_is_registered_half_way_out(seed, name, sigma, lateral, rate):
+    """Placements anchored half-way out (``register_seed(spread=True)``) sit on skin the press barely
+    moved: the view is identified to at least 85 % of its present markers, with no wrong id, where the
+    central placements alone certify nothing."""
+    from pipeline.vision.identity import R_NO_BLOB, consistent, grow, register_seed
+
+    pts, truth, in_scope = _pressed_view_with_defects(seed, name, sigma, lateral, rate)
+    assert in_scope
+    lat = lattice_of(DESIGNS[name])
+    for proposal in register_seed(pts, lat):
+        reason = np.full(len(lat.xy), R_NO_BLOB)
+        assert np.count_nonzero(certify(pts, grow(pts, consistent(pts, proposal, lat, reason), lat, reason), lat,
+                                        reason) >= 0) == 0
+    ids = code_rings(_blobs(pts), DESIGNS[name]).ids
+    assert _wrong(ids, truth) == 0
+    assert np.count_nonzero(ids >= 0) >= 0.85 * np.count_nonzero(truth >= 0)
 
 
 # views the same search found (defect seed, pattern, sigma, lateral, rate): at the tip of the press a

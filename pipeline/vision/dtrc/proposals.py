@@ -12,6 +12,7 @@ from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity.reacquire import reacquire
 from pipeline.vision.identity.temporal import expected_positions
+from pipeline.vision.identity.constants import R_FEW
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
                                       contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
@@ -31,6 +32,9 @@ def _merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 #: The lattice registration is tried when ring coding leaves more than this fraction of the blobs
 #: (or slots) unidentified.
 SEED_BELOW = 0.9
+#: Placements scored by the spread registration (six anchor blobs, each on every slot, at one to three
+#: rotations: at most ~3,900 for the largest built-in pattern); a cap on its memory, (H, N, 2) floats.
+SPREAD_HYPOTHESES = 4_000
 
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
@@ -39,7 +43,9 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     ``previous`` (the previous frame's certain markers: xy_px (M, 2), ids (M,)) is given and the
     proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
     by growth; when that leaves markers unidentified, also to the placements of a lattice
-    registration independent of ring peeling. Markers still unidentified are then followed from the
+    registration independent of ring peeling, anchored in the middle of the blobs and, for a
+    hexagonal or square lattice still read below :data:`SEED_BELOW`, half-way out
+    (``register_seed(spread=True)``: a sharp press crowds the middle). Markers still unidentified are then followed from the
     previous frame (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are
     re-acquired from the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
     Returns (certified id per blob, reason code per design id)."""
@@ -83,10 +89,17 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             cands.append(run(p))
             if count(cands[-1]) >= enough:
                 break
+    if max(map(count, cands)) < enough and lat.translation_lattice:
+        for p in register_seed(pts, lat, spread=True, max_hypotheses=SPREAD_HYPOTHESES):
+            cands.append(run(p))
+            if count(cands[-1]) >= enough:
+                break
     cands.sort(key=lambda c: -count(c))
     if len(cands) > 1 and count(cands[1]) > 0:
         cands.append(run(_merge(cands[0][0], cands[1][0])))
     ids, reason = max(cands, key=count)
+    if lat.translation_lattice:
+        ids, reason = _withdraw_thinly_held(ids, reason, lat, msgs)
     rule_ids = ids
     if carried is not None and (carried >= 0).any():
         bad = _temporally_contradicted(previous, pts, ids, carried)
@@ -108,6 +121,39 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     if defects or n_certified < n_slots:
         msgs.append(f"certainty rule: {n_certified} of {n_slots} ids certain")
     return ids, reason, followed
+
+
+#: An interior marker of a hexagonal or square pattern keeps its id only with at least this many of its
+#: immediate design neighbours identified beside it.
+HELD_BY = 3
+
+
+def _withdraw_thinly_held(ids: np.ndarray, reason: np.ndarray, lat, msgs: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Withdraw the ids of interior markers with fewer than :data:`HELD_BY` identified immediate design
+    neighbours (reason ``R_FEW``), once. Near a sharp press tip the skin crowds to half the median
+    spacing and a missing marker's slot, predicted across a gap from one side, is taken by whatever
+    blob sits about where the displaced pin would be: a spurious blob, or the next pin. Such an id is
+    held by two neighbours or fewer; a marker inside the pattern that is really identified has its
+    ring of six (eight) neighbours mostly identified too. The outer ring, where a marker has only
+    three or four neighbours, is left to the anchoring test.
+
+    Measured on 2,755 sharply pressed views with up to 10 % missing and spurious blobs (5 mm, sigma
+    1-2.5 mm; hexagon127, square121, hexagon217_sep180): 5 -> 3 wrong ids, coverage 93.61 -> 93.50 %."""
+    lab = np.flatnonzero(ids >= 0)
+    if len(lab) == 0:
+        return ids, reason
+    has = np.zeros(len(lat.xy), bool)
+    has[ids[lab]] = True
+    nb = lat.nbr[ids[lab]]
+    held = np.count_nonzero((nb >= 0) & has[np.maximum(nb, 0)], axis=1)
+    drop = (held < HELD_BY) & ~np.isin(ids[lab], lat.outer_ring)
+    if not drop.any():
+        return ids, reason
+    ids, reason = ids.copy(), reason.copy()
+    reason[ids[lab[drop]]] = R_FEW
+    ids[lab[drop]] = -1
+    msgs.append(f"withdrew {int(drop.sum())} interior id(s) held by fewer than {HELD_BY} identified neighbours")
+    return ids, reason
 
 
 #: More contradictions than this fraction of the markers both certifications cover (and more than

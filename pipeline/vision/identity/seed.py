@@ -24,9 +24,14 @@ SEED_RASTER_MAX_CELLS = 4_000_000
 #: (separations) from it.
 SEED_RING1_INNER = 0.7
 SEED_RING1_OUTER = 1.3
+#: With ``spread``, the placements of a hexagonal or square lattice are anchored on the blobs nearest six
+#: points this fraction of the pattern's radius from its middle (the radius estimated as sqrt(2) times
+#: the blobs' median distance from their median, which it is for markers filling a disc).
+SEED_SPREAD_RADIUS = 0.5
 
 
-def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n_best: int = 8) -> list:
+def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n_best: int = 8,
+                  spread: bool = False) -> list:
     """A proposal independent of ring peeling: the similarity transform (scale from the median
     nearest-neighbour distance, rotation within the unambiguous range from the directions to the
     nearest neighbours, translation putting one of the central blobs on one of the central slots)
@@ -36,7 +41,14 @@ def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n
     per blob, -1 none: every slot whose projection has exactly one blob within a third of a
     separation and that lies within :data:`SEED_RADIUS` separations of the slot the placement was
     anchored on, where a similarity still fits a bulged pattern), best first; growth and the
-    anchoring test decide among them."""
+    anchoring test decide among them.
+
+    ``spread`` (hexagonal and square lattices): the placements are anchored instead on six blobs
+    around the middle (:data:`SEED_SPREAD_RADIUS`), each tried on every slot. A sharp press at the
+    middle crowds the central blobs and displaces them by up to half a separation, so no placement
+    anchored there fits the rest of the pattern and none labels the central blobs right; half-way
+    out, at least some anchors sit on skin the press barely moved, and the proposal labels the
+    neighbourhood of that anchor, from where growth reaches inwards."""
     n = len(pts)
     out: list = []
     if n < 4:
@@ -61,6 +73,11 @@ def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n
     b_idx = tree.query(c_img, k=min(7 if lat.translation_lattice else 19, n))[1]
     c_des = lat.xy.mean(axis=0)
     s_idx = np.argsort(np.hypot(*(lat.xy - c_des).T), kind="stable")[:19]
+    if spread and lat.translation_lattice:
+        r_img = SEED_SPREAD_RADIUS * math.sqrt(2.0) * float(np.median(np.hypot(*(pts - c_img).T)))
+        turn = np.arange(6) * (math.pi / 3)
+        b_idx = np.unique(tree.query(c_img + r_img * np.stack([np.cos(turn), np.sin(turn)], axis=1))[1])
+        s_idx = np.arange(len(lat.xy))
     # score by a distance map of the blobs (one lookup per projected slot)
     scale_map = SEED_RASTER_PX / pitch_px
     lo = pts.min(axis=0) - 2 * pitch_px
