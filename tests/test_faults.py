@@ -218,6 +218,8 @@ def test_reconstruct_runs_its_frames_at_the_niceness_asked_for(recording, tmp_pa
 
     monkeypatch.setattr(Reconstructor, "process", process)
     before = current_niceness()
+    if before > 17:
+        pytest.skip(f"the tests run at niceness {before}: no niceness two above it to ask for (the OS caps it at 19)")
     result = run(tmp_path / "o", before + 2)
     assert result["rc"] == 0 and seen == [before + 2] * 3
     if os.geteuid() == 0:                   # lowering it back needs the privilege

@@ -34,6 +34,8 @@ def _in_thread(fn):
 
 def test_a_raised_niceness_holds_in_the_block_and_only_in_the_calling_thread():
     main_before = current_niceness()
+    if main_before > 16:
+        pytest.skip(f"the tests run at niceness {main_before}: no niceness three above it to ask for (the OS caps it at 19)")
 
     def body():
         before = current_niceness()
