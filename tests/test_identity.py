@@ -358,6 +358,30 @@ def _assert_no_wrong_id_in_scope(seed, name, sigma, lateral, rate):
     assert np.count_nonzero(ids >= 0) >= 0.85 * np.count_nonzero(truth >= 0)
 
 
+def test_the_half_way_registration_is_a_first_frames_search(monkeypatch):
+    """The placements anchored half-way out cost 35-90 ms a view where they run: a view read below 90 %
+    with no id carried from a previous frame (a first frame) tries them; the same view with the previous
+    frame's ids carried does not (a crowded sequence would pay it every frame)."""
+    import pipeline.vision.dtrc.proposals as proposals
+
+    calls = []
+    real = proposals.register_seed
+
+    def spy(pts, lat, **kw):
+        calls.append(bool(kw.get("spread")))
+        return real(pts, lat, **kw)
+
+    monkeypatch.setattr(proposals, "register_seed", spy)
+    seed, name, *_ = _CROWDED_MIDDLE_VIEWS[0]
+    pts, truth, _ = _pressed_view_with_defects(*_CROWDED_MIDDLE_VIEWS[0])
+    first = code_rings(_blobs(pts), DESIGNS[name])
+    assert True in calls
+    calls.clear()
+    known = first.ids >= 0
+    code_rings(_blobs(pts), DESIGNS[name], previous=(pts[known][:20], first.ids[known][:20]))
+    assert True not in calls
+
+
 # views a wider local search of the property above found (defect seed, pattern, sigma, lateral, rate);
 # in each, a slot near the tip predicted from one side only (two or three of its six immediate
 # neighbours identified) had its real pin 0.41-0.48 separations off the extrapolated prediction,

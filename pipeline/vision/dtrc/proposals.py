@@ -44,8 +44,8 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
     by growth; when that leaves markers unidentified, also to the placements of a lattice
     registration independent of ring peeling, anchored in the middle of the blobs and, for a
-    hexagonal or square lattice still read below :data:`SEED_BELOW`, half-way out
-    (``register_seed(spread=True)``: a sharp press crowds the middle). Markers still unidentified are then followed from the
+    hexagonal or square lattice still read below :data:`SEED_BELOW` with no id carried from a previous
+    frame, half-way out (``register_seed(spread=True)``: a sharp press crowds the middle). Markers still unidentified are then followed from the
     previous frame (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are
     re-acquired from the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
     Returns (certified id per blob, reason code per design id)."""
@@ -89,7 +89,9 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             cands.append(run(p))
             if count(cands[-1]) >= enough:
                 break
-    if max(map(count, cands)) < enough and lat.translation_lattice:
+    if max(map(count, cands)) < enough and lat.translation_lattice and (carried is None or not (carried >= 0).any()):
+        # the wider registration costs 35-90 ms a view where it runs (hexagon217, square121): a first frame's
+        # (or one after everything was lost); in a sequence the previous frame's ids carry the reading
         for p in register_seed(pts, lat, spread=True, max_hypotheses=SPREAD_HYPOTHESES):
             cands.append(run(p))
             if count(cands[-1]) >= enough:
