@@ -42,8 +42,8 @@ N_FRAMES = 20               # stereo frames timed after one warm-up
 # integrator, the CG solver, contacts), written here rather than built by the twin so that a change to the
 # twin's model does not move it. Press time in units of it compares across machines and loads where the
 # pipeline's reference job (OpenCV and a dense solve) does not: in units of that job the same press measured
-# 632-1113 in runs on 2-core hosts (this machine on three days and the CI host), 72-84 in units of this one
-# (2026-11-27, quiet and beside a process spinning on a core).
+# 632-1113 in runs on 2-core hosts (this machine on three days and the CI host), 69-84 in units of this one
+# (2026-11-27, quiet, beside a process spinning on a core, and in the fresh-clone CI run).
 _PHYSICS_REFERENCE_XML = """
 <mujoco model="physics_reference">
   <option integrator="discrete" solver="CG" timestep="0.002" gravity="0 0 0" tolerance="1e-6"/>
@@ -83,6 +83,8 @@ def physics_reference_ms(repeats: int = 3) -> float:
             mj.mj_step(model, data)
         times.append((time.perf_counter() - t0) * 1e3)
     return float(min(times))
+
+
 DEPTH_MM = 5.0
 GOALS = {"press_s": 3.0, "sharp_press_s": 6.0, "gap_max_mm": 0.1, "frame_ms": 50.0,
          "face_contact_press_s": 3.0, "face_contact_sharp_press_s": 6.0,

@@ -11,8 +11,8 @@ from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity.reacquire import reacquire
-from pipeline.vision.identity.temporal import expected_positions
 from pipeline.vision.identity.constants import R_FEW
+from pipeline.vision.identity.temporal import expected_positions
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
                                       contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
@@ -45,9 +45,10 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     by growth; when that leaves markers unidentified, also to the placements of a lattice
     registration independent of ring peeling, anchored in the middle of the blobs and, for a
     hexagonal or square lattice still read below :data:`SEED_BELOW` with no id carried from a previous
-    frame, half-way out (``register_seed(spread=True)``: a sharp press crowds the middle). Markers still unidentified are then followed from the
-    previous frame (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are
-    re-acquired from the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
+    frame, half-way out (``register_seed(spread=True)``: a sharp press crowds the middle). Markers
+    still unidentified are then followed from the previous frame
+    (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are re-acquired from
+    the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
     Returns (certified id per blob, reason code per design id)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)
