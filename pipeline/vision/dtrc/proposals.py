@@ -80,20 +80,20 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
 
     enough = SEED_BELOW * min(n_slots, len(pts))
     cands = [run(proposal)]
-    carried = None
-    if previous is not None:
-        carried = carry_ids(previous[0], previous[1], pts)
-        if (carried >= 0).any():
-            cands.append(run(carried))
-    if max(map(count, cands)) < enough:
-        for p in register_seed(pts, lat):
-            cands.append(run(p))
-            if count(cands[-1]) >= enough:
-                break
-    if max(map(count, cands)) < enough and lat.translation_lattice and (carried is None or not (carried >= 0).any()):
-        # the wider registration costs 35-90 ms a view where it runs (hexagon217, square121): a first frame's
-        # (or one after everything was lost); in a sequence the previous frame's ids carry the reading
-        for p in register_seed(pts, lat, spread=True, max_hypotheses=SPREAD_HYPOTHESES):
+    carried = None if previous is None else carry_ids(previous[0], previous[1], pts)
+    carries = carried is not None and bool((carried >= 0).any())
+    if carries:
+        cands.append(run(carried))
+    # the registration anchored in the middle, then (hexagonal, square) the one anchored half-way out: it
+    # costs 35-90 ms a view where it runs (hexagon217, square121), so it is a first frame's (or one after
+    # everything was lost); in a sequence the previous frame's ids carry the reading
+    registrations = [{}]
+    if lat.translation_lattice and not carries:
+        registrations.append({"spread": True, "max_hypotheses": SPREAD_HYPOTHESES})
+    for kw in registrations:
+        if max(map(count, cands)) >= enough:
+            break
+        for p in register_seed(pts, lat, **kw):
             cands.append(run(p))
             if count(cands[-1]) >= enough:
                 break
@@ -104,7 +104,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     if lat.translation_lattice:
         ids, reason = _withdraw_thinly_held(ids, reason, lat, msgs)
     rule_ids = ids
-    if carried is not None and (carried >= 0).any():
+    if carries:
         bad = _temporally_contradicted(previous, pts, ids, carried)
         if bad.any():
             ids, reason = ids.copy(), reason.copy()

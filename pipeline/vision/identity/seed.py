@@ -70,14 +70,15 @@ def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n
 
     # translations: central blobs on central slots
     c_img = np.median(pts, axis=0)
-    b_idx = tree.query(c_img, k=min(7 if lat.translation_lattice else 19, n))[1]
     c_des = lat.xy.mean(axis=0)
-    s_idx = np.argsort(np.hypot(*(lat.xy - c_des).T), kind="stable")[:19]
     if spread and lat.translation_lattice:
         r_img = SEED_SPREAD_RADIUS * math.sqrt(2.0) * float(np.median(np.hypot(*(pts - c_img).T)))
         turn = np.arange(6) * (math.pi / 3)
         b_idx = np.unique(tree.query(c_img + r_img * np.stack([np.cos(turn), np.sin(turn)], axis=1))[1])
         s_idx = np.arange(len(lat.xy))
+    else:
+        b_idx = tree.query(c_img, k=min(7 if lat.translation_lattice else 19, n))[1]
+        s_idx = np.argsort(np.hypot(*(lat.xy - c_des).T), kind="stable")[:19]
     # score by a distance map of the blobs (one lookup per projected slot)
     scale_map = SEED_RASTER_PX / pitch_px
     lo = pts.min(axis=0) - 2 * pitch_px
