@@ -10,7 +10,9 @@ and :data:`BLOCKS` names what each block is made of: the gate figures of a quick
 metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``quick-experiments``, one row per
 experiment: the paper's figures and claims beside the run's) and a full run's (``full-suite``, the same with each
 experiment's wall time), the twin's speed and fidelity table
-(``twin-speed``, from a ``bench twin`` record), the identification coverage table (``identification-coverage``,
+(``twin-speed``, from a ``bench twin`` record), the Pipeline and renderer tables (``pipeline-accuracy`` and ``renderer-accuracy``, from a ``bench accuracy``
+record and, for the Pipeline table's latency row, a ``bench latency`` record beside it), the identification
+coverage table (``identification-coverage``,
 from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
 record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), the TacTip twin
 against labelled real frames (``tactip-validation``, from the ``summary.json`` that ``stereotactip validate``
@@ -43,6 +45,7 @@ from typing import Callable, Sequence
 
 from benchmarks.readme_error_sources import error_sources_markdown
 from benchmarks.readme_physics import physics_checks_markdown
+from benchmarks.readme_pipeline import pipeline_accuracy_markdown, renderer_accuracy_markdown
 from benchmarks.readme_render import (CALIBRATION_METRICS, VALIDATE_SUMMARY, Records, _identification_coverage,
                                       _full_suite, _oracle_vs_estimated, _quick_experiments, _tactip_validation, _tracking_identity,
                                       _twin_speed, gate_figures_markdown)
@@ -103,6 +106,11 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
                 "patterns and gaussian figures of estimated quick runs that each keep one error source, with "
                 "each run's drawn build, chessboard calibration and press-fitted index",
                 against=2),
+    ReadmeBlock("pipeline-accuracy", "accuracy", pipeline_accuracy_markdown,
+                "the pipeline's stages against analytic truth and real frames, with its latency, from a directory "
+                "holding a `bench accuracy` and a `bench latency` record"),
+    ReadmeBlock("renderer-accuracy", "accuracy", renderer_accuracy_markdown,
+                "the twin's rendered marker centres against the exact projection and a ray-traced reference"),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
                 "wrong ids and coverage per defect condition and pattern", doc="docs/IDENTIFICATION.md"),

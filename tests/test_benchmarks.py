@@ -506,8 +506,8 @@ def test_readme_shows_every_metric_the_ci_gate_guards():
 
 
 def test_readme_headline_blocks_match_the_records_they_were_written_from():
-    """The README's headline tables (the quick run's gate figures and experiments, twin speed, identification
-    coverage, tracking, oracle vs estimated, each error source alone) are generated blocks: each is written again
+    """The README's headline tables (the quick run's gate figures and experiments, the pipeline's and the
+    renderer's accuracy and latency, twin speed, identification coverage, tracking, oracle vs estimated, each error source alone) are generated blocks: each is written again
     from the records it names (kept in docs/records/) and must equal the README's text, so a hand edit of a
     figure, or a record replaced without rerunning `stereotactip report DIR --readme README.md --block NAME`,
     fails here. A block may stand in README.md or in a document under docs/ (the file its marker names), once."""
@@ -525,7 +525,7 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
             blocks[name], where_is[name] = block, rel
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
             "quick-experiments", "full-suite", "oracle-vs-estimated", "error-sources", "physics-checks",
-            "tactip-validation"} <= set(blocks)
+            "tactip-validation", "pipeline-accuracy", "renderer-accuracy"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # the quick run's gate figures, from the same kept records
             source, *other = re.findall(r"figures from `([^`]+)`", text)

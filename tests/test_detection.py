@@ -8,35 +8,17 @@ import pytest
 from scipy.spatial import cKDTree
 
 from pipeline.vision.detection import DetectionParams, detect_markers
+from benchmarks.experiments.accuracy import CENTRE_MAX_TOL_PX, CENTRE_RMS_TOL_PX, glare_mask as _glare_mask
+from pipeline.io.synthetic import disc_grid_image as _disc_image
 from pipeline.types import Blobs, DataError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_frames"
 REAL = sorted(DATA.glob("tactip331_*.png")) if DATA.is_dir() else []
 
-#: Centre RMS on noise-free anti-aliased discs. cv2.circle(LINE_AA, shift=8) places the centre to
-#: 1/256 px and approximates edge coverage to a few % of a pixel; the centroid averages ~2*pi*r edge
-#: pixels, leaving ~0.02-0.03 px (measured 0.018 / 0.022 / 0.027 px for r = 3 / 5 / 8).
-CENTRE_RMS_TOL_PX = 0.05
-#: Worst single centre on the same images (measured <= 0.062 px).
-CENTRE_MAX_TOL_PX = 0.1
+# Centre RMS and worst centre on noise-free anti-aliased discs: derived where the accuracy benchmark reads them.
 #: With additive Gaussian noise sigma_n = 5 grey levels on contrast 200, the centroid error grows to
 #: about sigma_n / C * sqrt(N_window) / N_window * r ~ 0.02 px; 0.1 px leaves margin.
 NOISY_RMS_TOL_PX = 0.1
-
-
-def _disc_image(radius_px: float, rng, *, noise=0.0, value=200, pitch=40, shape=(480, 640)):
-    img = np.zeros(shape, np.float64)
-    pts = []
-    for y in range(pitch, shape[0] - pitch // 2, pitch):
-        for x in range(pitch, shape[1] - pitch // 2, pitch):
-            c = np.array([x, y]) + rng.uniform(-0.5, 0.5, 2)
-            pts.append(c)
-    canvas = np.zeros(shape, np.uint8)
-    for c in pts:
-        cv2.circle(canvas, (int(round(c[0] * 256)), int(round(c[1] * 256))), int(round(radius_px * 256)),
-                   value, -1, cv2.LINE_AA, 8)
-    img = canvas.astype(np.float64) + (rng.normal(0, noise, shape) if noise else 0)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8), np.asarray(pts)
 
 
 @pytest.mark.parametrize("radius_px", [3.0, 5.0, 8.0])
@@ -101,21 +83,14 @@ def test_params_are_validated():
         DetectionParams(threshold=0.0)
 
 
-def _glare_mask(grey: np.ndarray) -> np.ndarray:
-    """Saturated connected regions of >= 20 px (LED glare, bright rim), grown by 3 px."""
-    n, lab, st, _ = cv2.connectedComponentsWithStats((grey >= 250).astype(np.uint8))
-    big = np.isin(lab, np.nonzero(st[:, cv2.CC_STAT_AREA] >= 20)[0][1:])
-    return cv2.dilate(big.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-
-
 @pytest.mark.skipif(not REAL, reason=f"real TacTip frames not found in {DATA}")
 @pytest.mark.parametrize("path", REAL, ids=lambda p: p.name)
 def test_real_tactip_frames_find_331_pins_and_no_glare(path):
     """With the monocular dome parameters (MONOCULAR_DOME): exactly 331 of 331 pins on each of the 41
     real frames (raw and tap_1..40; measured 331 on every one, where the stereo defaults give 328-333:
     gel debris next to a pin lit its ring and vetoed it, debris specks were taken for pins, one pin was
-    found twice 3.8 px apart), no two centres closer than half the median marker separation (closest
-    measured: 0.79 of it), 0 detections inside the saturated glare regions."""
+    found twice 3.8 px apart), no two centres closer than half the median marker separation (the closest
+    measured, per frame: `bench accuracy --param real_frames=DIR`), 0 detections inside the saturated glare regions."""
     from pipeline.vision.detection import MONOCULAR_DOME
 
     img = cv2.imread(str(path))

@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks.experiments.accuracy import EXACT_TOL_MM
 from pipeline.design import load_design
 from pipeline.geometry.index_fit import fit_refractive_index
 from pipeline.geometry.refraction import (RefractionError, correct_exact, correct_linear, project_through_stack,
@@ -12,9 +13,6 @@ from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration
 from pipeline.geometry.triangulation import camera_poses, triangulate
 from pipeline.types import MarkerCloud, MarkerMatches
 
-# Forward projection (bisection to 2^-64) and back-projection (undistortion to 1e-12) are both at double
-# precision; 1e-6 mm is ~1e-7 of the 30 mm optical path and still catches any geometric slip.
-EXACT_TOL_MM = 1e-6
 
 
 def _apparent(points, calib, design):

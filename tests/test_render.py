@@ -12,33 +12,24 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks.experiments.accuracy import RENDER_CENTROID_TOL_PX as CENTROID_TOL_PX, TRACE_AREA_TOL, TRACE_CENTROID_TOL_PX
 from pipeline.design import load_design
 from pipeline.types import StereoFrame
 from twin import render as R
-from twin.camera import pixels_to_normalised
-from twin.optics import FlatStack, project_exact, trace_forward
+from twin.optics import project_exact
+from twin.render.reference import (blob_centroids as _blob_centroids, displaced_markers, grey as _grey,
+                                   nearest_offsets as _match_errors, trace_comparison)
 
 pytestmark = pytest.mark.render
 
 DESIGN = load_design("hexagon127")
 W, H = DESIGN.cameras.width_px, DESIGN.cameras.height_px
 
-# Render-versus-math, thin markers (0.02 mm, so only the face is seen). The centroid of the image of a
-# disc differs from the image of its centre by the perspective term f·r²·sinα·cosα/Z² ≤ 442·0.25·0.45/620²
-# px ≈ 0.13 px (r = 0.5 mm, apparent distance Z ≈ 25 mm, face tilted α ≤ 35° to the line of sight), plus
-# the shading gradient across the blob (g·r²/4 ≤ 0.002/px · 81 px² / 4 ≈ 0.04 px) and the 0.02 mm wall
-# (≤ 0.01 mm · 18 px/mm ≈ 0.2 px·tanθ_gel ≈ 0.08 px): ≤ 0.25 px. A half-pixel offset or a flip fails it.
-CENTROID_TOL_PX = 0.3
+# CENTROID_TOL_PX (thin markers: render versus math) and the traced comparison's TRACE_CENTROID_TOL_PX and
+# TRACE_AREA_TOL are derived where the accuracy benchmark reads them.
 # Full-thickness (0.3 mm) markers: the white cylinder wall seen obliquely adds up to
 # t·tanθ_gel/2 · 18 px/mm ≈ 0.3·0.45/2·18 ≈ 1.2 px (darker wall albedo: less); bound used: 1.0 px.
 THICK_CENTROID_TOL_PX = 1.0
-# Ray-traced reference vs per-vertex render: same photometric chain, so the residual is MSAA (4 samples
-# per pixel on ~60 edge pixels: ~0.02 px), the area-matched 16-gon vs circle (area 0, outline +1.3/−0.7 %,
-# centroid 0 by symmetry), the bilinear lens remap with 1/32-px fixed-point maps from a 0.8x pinhole
-# render (~0.03 px) and the per-vertex linear interpolation (second order over 1 mm: < 0.01 px).
-# Measured: typically 0.01-0.06 px, worst 0.08 px (mass ≤ 1.2 %); bound 0.15 px.
-TRACE_CENTROID_TOL_PX = 0.15
-TRACE_AREA_TOL = 0.03         # relative "bright mass" difference (0.64 % polygon + remap smoothing)
 # Chessboard corners. findChessboardCornersSB's own localisation on these strongly barrel-distorted views
 # is the limit: measured RMS 0.12 px, worst 0.45 px, the SAME noise-free and at quality="high" (so not
 # the renderer's). cv2.cornerSubPix (4 px window) on the same frames: RMS 0.11 px, worst 0.32 px at
@@ -53,42 +44,8 @@ def clean_renderer():
     return R.StereoRenderer(DESIGN, rng=np.random.default_rng(0), noise=False)
 
 
-def _grey(img) -> np.ndarray:
-    return cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY).astype(np.float64)
-
-
-def _blob_centroids(img, thr=90.0, lo=20.0) -> np.ndarray:
-    """Marker centroids: components above ``thr``; inside a padded box, weights clip((I − lo)/(hi − lo)),
-    hi = the blob's 90th percentile (≈ coverage, robust to the smooth LED shading)."""
-    g = _grey(img)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats((g > thr).astype(np.uint8), connectivity=8)
-    out = []
-    for k in range(1, n):
-        if not 20 < stats[k, cv2.CC_STAT_AREA] < 2000:      # markers are ~250 px; the mount ring is huge
-            continue
-        x0, y0, w, h = stats[k, :4]
-        x0, y0 = max(x0 - 3, 0), max(y0 - 3, 0)
-        patch = g[y0:y0 + h + 6, x0:x0 + w + 6]
-        lp = lab[y0:y0 + h + 6, x0:x0 + w + 6]
-        hi = np.percentile(patch[lp == k], 90)
-        wgt = np.clip((patch - lo) / (hi - lo), 0.0, 1.0) * ((lp == k) | (lp == 0))
-        ys, xs = np.mgrid[y0:y0 + patch.shape[0], x0:x0 + patch.shape[1]]
-        out.append([(wgt * xs).sum() / wgt.sum(), (wgt * ys).sum() / wgt.sum()])
-    return np.array(out).reshape(-1, 2)
-
-
-def _match_errors(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """For each true point, the offset of the nearest found centroid (N, 2)."""
-    d = np.linalg.norm(found[:, None] - truth[None], axis=2)
-    return found[d.argmin(axis=0)] - truth
-
-
 def _displaced_markers(rng):
-    P = DESIGN.rest_markers_mm()
-    n = len(P)
-    P = P + np.column_stack([rng.uniform(-0.4, 0.4, (n, 2)), rng.uniform(-0.8, 0.8, n)])
-    A = np.column_stack([rng.uniform(-0.18, 0.18, (n, 2)), -np.ones(n)])   # pins tilted up to ~14°
-    return P, A / np.linalg.norm(A, axis=1, keepdims=True)
+    return displaced_markers(DESIGN, rng)
 
 
 def _inside(uv, margin=12):
@@ -158,97 +115,17 @@ def test_stereo_disparity_sign_and_rows():
 
 # ----- per-vertex refraction versus per-pixel ray tracing ----------------------------------
 
-def _trace_albedo(side: str, uv: np.ndarray, P: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """BGR albedo seen along each pixel ray (N, 3): exact vector Snell through the stack, then the first
-    hit among marker faces, marker walls, pin caps and pin walls of markers P (axes A), else the skin."""
-    d = DESIGN
-    pose = d.camera_poses()[side]
-    cam = getattr(d.cameras, side)
-    n = pixels_to_normalised(uv, cam.K, cam.D)
-    d_air = np.column_stack([n, np.ones(len(n))]) @ pose[:3, :3].T
-    stack = FlatStack.from_design(d)
-    o, dg = trace_forward(pose[:3, 3], d_air, stack, d.gel_acrylic_z_mm + 1e-9)
-    r, t = d.markers.diameter_mm / 2.0, d.markers.thickness_mm
-    rp, Hp = d.pins.diameter_mm / 2.0, d.pins.height_mm
-    best = np.full(len(o), np.inf)
-    colour = np.tile(np.array(R.SKIN_BGR), (len(o), 1))
-    # skin underside (flat, z = −T)
-    s_skin = (-d.skin.thickness_mm - o[:, 2]) / dg[:, 2]
-    best = np.minimum(best, s_skin)
-    rot = R.marker_rotations(A)
-    for m in range(len(P)):
-        lo = (o - P[m]) @ rot[m]                     # R^T (o − P): local frame, rest axis (0, 0, −1)
-        ld = dg @ rot[m]
-
-        def consider(s, mask, bgr):
-            take = mask & (s > 0) & (s < best)
-            best[take] = s[take]
-            colour[take] = bgr
-
-        def plane(z0, rmax, bgr):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s = (z0 - lo[:, 2]) / ld[:, 2]
-            x = lo[:, :2] + s[:, None] * ld[:, :2]
-            consider(s, np.isfinite(s) & (np.sum(x * x, axis=1) <= rmax**2), bgr)
-
-        def wall(rad, z0, z1, bgr):
-            a = np.sum(ld[:, :2] ** 2, axis=1)
-            b = 2 * np.sum(lo[:, :2] * ld[:, :2], axis=1)
-            c = np.sum(lo[:, :2] ** 2, axis=1) - rad**2
-            disc = b * b - 4 * a * c
-            ok = disc >= 0
-            sq = np.sqrt(np.where(ok, disc, 0.0))
-            for s in ((-b - sq) / (2 * a), (-b + sq) / (2 * a)):
-                z = lo[:, 2] + s * ld[:, 2]
-                consider(s, ok & (z >= z0) & (z <= z1), bgr)
-
-        plane(0.0, r, R.MARKER_BGR)
-        wall(r, 0.0, t, R.MARKER_SIDE_BGR)
-        plane(t / 2.0, rp, R.PIN_BGR)
-        wall(rp, t / 2.0, Hp, R.PIN_BGR)
-    return colour
-
-
-def _bright_moments(g: np.ndarray, x0: int, y0: int):
-    bg = np.median(np.concatenate([g[0], g[-1], g[:, 0], g[:, -1]]))
-    w = np.clip(g - bg, 0.0, None)
-    ys, xs = np.mgrid[y0:y0 + g.shape[0], x0:x0 + g.shape[1]]
-    return np.array([(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()]), w.sum()
-
-
 def test_per_vertex_refraction_matches_ray_traced_reference(clean_renderer):
+    """Per-vertex refraction against the per-pixel ray tracer of ``twin.render.reference`` on a centre,
+    a middle-ring and two outer markers, in each view where their window lies inside the image."""
     P, A = _displaced_markers(np.random.default_rng(4))
-    frame = clean_renderer.render_markers(P, A)
     layers = DESIGN.marker_layers()
     picks = [int(np.argmax(layers == 0)), int(np.argmax(layers == 3)), 0, int(np.argmax(layers == 6)) + 9]
-    half, pad, ss = 15, 5, 4                        # window half-size, blur padding, sub-samples per axis
-    sub = (np.arange(ss) + 0.5) / ss - 0.5
-    checked = 0
-    for side, img in (("left", frame.left), ("right", frame.right)):
-        shade = clean_renderer.shading_map(side)
-        truth = project_exact(P, DESIGN, side)
-        for m in picks:
-            cu, cv = np.round(truth[m]).astype(int)
-            x0, y0 = cu - half - pad, cv - half - pad
-            size = 2 * (half + pad) + 1
-            if x0 < 0 or y0 < 0 or x0 + size > W or y0 + size > H:
-                continue
-            U, V = np.meshgrid(np.arange(x0, x0 + size), np.arange(y0, y0 + size))
-            su = (U[..., None, None] + sub[None, None, None, :]).repeat(ss, axis=2)
-            sv = (V[..., None, None] + sub[None, None, :, None]).repeat(ss, axis=3)
-            uv = np.column_stack([su.ravel(), sv.ravel()])
-            near = np.argsort(np.linalg.norm(P[:, :2] - P[m, :2], axis=1))[:7]
-            alb = _trace_albedo(side, uv, P[near], A[near]).reshape(size, size, ss * ss, 3).mean(axis=2)
-            syn = (255.0 * alb * shade[y0:y0 + size, x0:x0 + size, None]).astype(np.float32)
-            syn = cv2.GaussianBlur(syn, (0, 0), R.BLUR_SIGMA_PX)
-            syn8 = np.clip(syn + 0.5, 0, 255).astype(np.uint8)
-            sl = np.s_[pad:-pad, pad:-pad]
-            c_ref, m_ref = _bright_moments(_grey(syn8)[sl], x0 + pad, y0 + pad)
-            c_got, m_got = _bright_moments(_grey(img[y0:y0 + size, x0:x0 + size])[sl], x0 + pad, y0 + pad)
-            assert np.linalg.norm(c_got - c_ref) < TRACE_CENTROID_TOL_PX, (side, m, c_got - c_ref)
-            assert abs(m_got / m_ref - 1.0) < TRACE_AREA_TOL, (side, m, m_got / m_ref)
-            checked += 1
-    assert checked >= 6, f"only {checked} of {2 * len(picks)} marker windows lie inside the images"
+    rows = trace_comparison(clean_renderer, DESIGN, P, A, picks)
+    for row in rows:
+        assert row["centroid_offset_px"] < TRACE_CENTROID_TOL_PX, row
+        assert abs(row["mass_ratio"] - 1.0) < TRACE_AREA_TOL, row
+    assert len(rows) >= 6, f"only {len(rows)} of {2 * len(picks)} marker windows lie inside the images"
 
 
 # ----- boards ------------------------------------------------------------------------------

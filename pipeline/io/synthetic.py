@@ -15,8 +15,8 @@ from pipeline.design import SensorDesign
 from pipeline.geometry.refraction import project_through_stack
 from pipeline.types import FRAME_HEIGHT_PX, FRAME_WIDTH_PX, StereoCalibration, StereoFrame, nominal_calibration
 
-__all__ = ["nominal_calibration", "synth_stereo_frame", "gaussian_press_markers", "BACKGROUND_GREY",
-           "MARKER_GREY"]
+__all__ = ["nominal_calibration", "synth_stereo_frame", "gaussian_press_markers", "disc_grid_image",
+           "BACKGROUND_GREY", "MARKER_GREY"]
 
 BACKGROUND_GREY = 25
 MARKER_GREY = 225
@@ -110,3 +110,24 @@ def synth_stereo_frame(design: SensorDesign, calib: StereoCalibration, marker_xy
             img = np.clip(img + rng.normal(0.0, noise_grey, img.shape), 0, 255).astype(np.uint8)
         halves.append(img)
     return StereoFrame.from_pair(halves[0], halves[1], index=index, timestamp_s=timestamp_s, source="synthetic")
+
+
+def disc_grid_image(radius_px: float, rng: np.random.Generator, *, noise: float = 0.0, value: int = 200,
+                    pitch: int = 40, shape: tuple[int, int] = (480, 640)) -> tuple[np.ndarray, np.ndarray]:
+    """A grey image of anti-aliased bright discs of ``radius_px`` on black, one per ``pitch``-px grid cell,
+    each centre jittered uniformly by up to half a pixel; optional Gaussian noise of ``noise`` grey levels.
+
+    Returns the uint8 image and the true centres (N, 2) px. ``cv2.circle`` (LINE_AA, 8 fractional bits)
+    places a centre to 1/256 px, so the image of each disc has a known sub-pixel centre: the analytic check
+    of the detector's centres.
+    """
+    pts = []
+    for y in range(pitch, shape[0] - pitch // 2, pitch):
+        for x in range(pitch, shape[1] - pitch // 2, pitch):
+            pts.append(np.array([x, y]) + rng.uniform(-0.5, 0.5, 2))
+    canvas = np.zeros(shape, np.uint8)
+    for c in pts:
+        cv2.circle(canvas, (int(round(c[0] * 256)), int(round(c[1] * 256))), int(round(radius_px * 256)),
+                   value, -1, cv2.LINE_AA, 8)
+    img = canvas.astype(np.float64) + (rng.normal(0, noise, shape) if noise else 0)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), np.asarray(pts)
