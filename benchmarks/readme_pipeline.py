@@ -12,13 +12,12 @@ from typing import Any, Mapping
 
 from benchmarks.experiments.accuracy import (CENTRE_MAX_TOL_PX, CENTRE_RMS_TOL_PX, E2E_TOL_MM, EXACT_TOL_MM,
                                             RENDER_CENTROID_TOL_PX, TRACE_AREA_TOL, TRACE_CENTROID_TOL_PX)
-from benchmarks.readme_render import Records, _provenance, _verdict_met
+from benchmarks.readme_render import _DESIGN_LABELS, Records, _provenance, _verdict_met
 from benchmarks.report import _fmt
 from benchmarks.results import ResultsError
 
 __all__ = ["pipeline_accuracy_markdown", "renderer_accuracy_markdown"]
 
-_DESIGN_LABEL = {"hexagon127": "hexagon 127", "circular217_dome": "circular 217", "square121": "square 121"}
 
 
 def _metric(rec: Mapping[str, Any], name: str) -> float | None:
@@ -60,8 +59,8 @@ def _latency_row(lat: Mapping[str, Any]) -> tuple[str, str, str, str]:
         med, p95 = _metric(lat, f"median_total_ms_{key}"), _metric(lat, f"p95_total_ms_{key}")
         st = stages.get(name, {})
         split = ", ".join(f"{s} {_fmt(v, 2)}" for s, v in st.items() if s != "total")
-        parts.append(f"{_DESIGN_LABEL.get(name, name)} **{_fmt(med, 3)} ms** (p95 {_fmt(p95, 3)}; {split})")
-        met.append(f"{_DESIGN_LABEL.get(name, name)} {_verdict_met(med is not None and med <= GOAL_MEDIAN_MS)}")
+        parts.append(f"{_DESIGN_LABELS.get(name, name)} **{_fmt(med, 3)} ms** (p95 {_fmt(p95, 3)}; {split})")
+        met.append(f"{_DESIGN_LABELS.get(name, name)} {_verdict_met(med is not None and med <= GOAL_MEDIAN_MS)}")
     params = lat.get("params") or {}
     load = f", {params['background_procs']} process(es) spinning beside it" if params.get("background_procs") else ""
     nice = f", frames at niceness {params['nice']}" if params.get("nice") is not None else ""
@@ -82,10 +81,11 @@ def pipeline_accuracy_markdown(records: Records, source: str) -> str:
     sub = tables.get("subpixel") or []
     e2e = tables.get("end_to_end") or []
     ref = tables.get("refraction") or []
+    ref_design = (acc.get("design") or {}).get("name", "?")
     rms, worst = _metric(acc, "centre_rms_px_max"), _metric(acc, "centre_max_px")
     e2e_max = _metric(acc, "e2e_max_mm")
     exact = _metric(acc, "exact_refraction_error_max_mm")
-    designs = ", ".join(_DESIGN_LABEL.get(d, d) for d in dict.fromkeys(r["design"] for r in e2e))
+    designs = ", ".join(_DESIGN_LABELS.get(d, d) for d in dict.fromkeys(r["design"] for r in e2e))
     depths = " and ".join(f"{d:g}" for d in dict.fromkeys(r["depth_mm"] for r in e2e))
     matched = sum(r["matched"] for r in e2e)
     visible = sum(r["visible"] for r in e2e)
@@ -104,8 +104,8 @@ def pipeline_accuracy_markdown(records: Records, source: str) -> str:
          f"≤ {E2E_TOL_MM:g} mm — "
          + _verdict_met(e2e_max is not None and e2e_max <= E2E_TOL_MM and matched == visible),
          "`stereotactip bench accuracy`; `pytest tests/test_runner.py`"),
-        ("the paper's linear refraction model vs the exact stack, pure depth moves of the rest pattern (hexagon 127): "
-         "relative depth error on the axis → the outer ring",
+        ("the paper's linear refraction model vs the exact stack, pure depth moves of the rest pattern "
+         f"({_DESIGN_LABELS.get(ref_design, ref_design)}): relative depth error on the axis → the outer ring",
          f"{lin}; the exact model {_fmt(exact, 2)} mm",
          f"grows with the angle of incidence (paper's error analysis); exact ≤ {EXACT_TOL_MM:g} mm — "
          + _verdict_met(exact is not None and exact <= EXACT_TOL_MM),

@@ -8,8 +8,8 @@ Each part measures one stage where the answer is known exactly:
   stack and drawn as discs, :mod:`pipeline.io.synthetic`) at rest and under a 2.5 mm Gaussian press with
   lateral motion, through the whole :class:`pipeline.runner.Reconstructor`: 3-D error of every matched marker;
 * **refraction models** — the paper's linear depth correction against the exact stack on pure depth moves of
-  the rest pattern (1 / 4 / 8 mm): its relative error per ring, and the exact correction's residual;
-* **renderer** — the twin's rendered marker centroids against the exact projection of the marker centres
+  the default design's (or a sweep cell's) rest pattern (1 / 4 / 8 mm): its relative error per ring, and the exact correction's residual;
+* **renderer** — on the same design, the twin's rendered marker centroids against the exact projection of the marker centres
   (thin markers, rest and displaced), and per-vertex refraction against a per-pixel ray tracer
   (:mod:`twin.render.reference`);
 * **real frames** (only with ``--param real_frames=DIR``) — the monocular dome parameters on real TacTip frames:
@@ -135,14 +135,12 @@ def end_to_end_rows(ctx: Context) -> list[dict]:
     return rows
 
 
-def refraction_rows() -> list[dict]:
-    from pipeline.design import load_design
+def refraction_rows(design) -> list[dict]:
     from pipeline.geometry.refraction import correct_exact, correct_linear, project_through_stack
     from pipeline.geometry.triangulation import triangulate
     from pipeline.io.synthetic import nominal_calibration
     from pipeline.types import MarkerMatches
 
-    design = load_design("hexagon127")
     calib = nominal_calibration(design)
     rest = design.rest_markers_mm()
     layers = design.marker_layers()
@@ -164,12 +162,10 @@ def refraction_rows() -> list[dict]:
     return rows
 
 
-def renderer_rows(ctx: Context) -> tuple[list[dict], list[dict]]:
-    from pipeline.design import load_design
+def renderer_rows(ctx: Context, design) -> tuple[list[dict], list[dict]]:
     from twin import render as R
     from twin.render.reference import displaced_markers, rendered_centre_errors, trace_comparison
 
-    design = load_design("hexagon127")
     thin = design.with_overrides({"markers.thickness_mm": 0.02})
     renderer = R.StereoRenderer(thin, rng=ctx.rng("render"), noise=False)
     rest = thin.rest_markers_mm()
@@ -184,7 +180,10 @@ def renderer_rows(ctx: Context) -> tuple[list[dict], list[dict]]:
     full = R.StereoRenderer(design, rng=ctx.rng("render"), noise=False)
     P, A = displaced_markers(design, ctx.rng("render-traced"))
     layers = design.marker_layers()
-    picks = [int(np.argmax(layers == 0)), int(np.argmax(layers == 3)), 0, int(np.argmax(layers == 6)) + 9]
+    outer = design.pattern.layers - 1
+    # the centre marker, one half-way out, the first marker and one on the outer ring (the most oblique view)
+    picks = [int(np.argmax(layers == 0)), int(np.argmax(layers == outer // 2)), 0,
+             min(int(np.argmax(layers == outer)) + 9, len(P) - 1)]
     return centres, trace_comparison(full, design, P, A, picks)
 
 
@@ -238,7 +237,8 @@ def run(ctx: Context) -> Result:
     """Pipeline and renderer stages against analytic truth: sub-pixel centres, end to end, refraction, renderer."""
     from pipeline.design import load_design
 
-    out = Result(designs=[load_design(n) for n in E2E_DESIGNS])
+    design = ctx.design()
+    out = Result(designs=[design] + [load_design(n) for n in E2E_DESIGNS if n != design.name])
     steps = ["sub-pixel centres", "end to end", "refraction models", "renderer"]
     folder = ctx.param("real_frames", None)
     if folder is not None:
@@ -249,9 +249,9 @@ def run(ctx: Context) -> Result:
     bar.update()
     tables["end_to_end"] = end_to_end_rows(ctx)
     bar.update()
-    tables["refraction"] = refraction_rows()
+    tables["refraction"] = refraction_rows(design)
     bar.update()
-    tables["render_centres"], tables["render_trace"] = renderer_rows(ctx)
+    tables["render_centres"], tables["render_trace"] = renderer_rows(ctx, design)
     bar.update()
     if folder is not None:
         tables["real_frames"] = real_frame_rows(Path(folder))
