@@ -11,7 +11,8 @@ metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``qu
 experiment: the paper's figures and claims beside the run's) and a full run's (``full-suite``, the same with each
 experiment's wall time), the twin's speed and fidelity table
 (``twin-speed``, from a ``bench twin`` record), the Pipeline and renderer tables (``pipeline-accuracy`` and ``renderer-accuracy``, from a ``bench accuracy``
-record and, for the Pipeline table's latency row, a ``bench latency`` record beside it), the identification
+record and, for the Pipeline table's latency row, a ``bench latency`` record beside it), the certainty rule's headline
+(``identification-summary``, from a ``bench identification`` record), the identification
 coverage table (``identification-coverage``,
 from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
 record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), the TacTip twin
@@ -45,7 +46,8 @@ from typing import Callable, Sequence
 
 from benchmarks.readme_error_sources import error_sources_markdown
 from benchmarks.readme_physics import physics_checks_markdown
-from benchmarks.readme_pipeline import pipeline_accuracy_markdown, renderer_accuracy_markdown
+from benchmarks.readme_pipeline import (identification_summary_markdown, pipeline_accuracy_markdown,
+                                        renderer_accuracy_markdown)
 from benchmarks.readme_render import (CALIBRATION_METRICS, VALIDATE_SUMMARY, Records, _identification_coverage,
                                       _full_suite, _oracle_vs_estimated, _quick_experiments, _tactip_validation, _tracking_identity,
                                       _twin_speed, gate_figures_markdown)
@@ -112,6 +114,9 @@ BLOCKS: dict[str, ReadmeBlock] = {b.name: b for b in (
     ReadmeBlock("renderer-accuracy", "accuracy", renderer_accuracy_markdown,
                 "the twin's rendered marker centres against the exact projection and a ray-traced reference"),
     ReadmeBlock("twin-speed", "twin", _twin_speed, "the twin's press and frame times, gap and penetration"),
+    ReadmeBlock("identification-summary", "identification", identification_summary_markdown,
+                "the certainty rule's headline: wrong ids over every trial and the worst pattern's coverage per "
+                "condition, against the coverage goals"),
     ReadmeBlock("identification-coverage", "identification", _identification_coverage,
                 "wrong ids and coverage per defect condition and pattern", doc="docs/IDENTIFICATION.md"),
     ReadmeBlock("tracking-identity", "tracking", _tracking_identity,

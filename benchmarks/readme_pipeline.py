@@ -1,6 +1,7 @@
 """The README's Pipeline and renderer tables (blocks ``pipeline-accuracy`` and ``renderer-accuracy``), written
 from a ``bench accuracy`` record and, for the Pipeline table's latency row, a ``bench latency`` record of the
-same directory (the README's are kept in ``docs/records/pipeline-accuracy``).
+same directory (the README's are kept in ``docs/records/pipeline-accuracy``), and the certainty rule's headline
+(``identification-summary``, from a ``bench identification`` record).
 
 Each row names what was measured, the record's figure, the tolerance it answers to (derived in
 :mod:`benchmarks.experiments.accuracy`, where the tests take them from too) and the command that reproduces it.
@@ -12,11 +13,11 @@ from typing import Any, Mapping
 
 from benchmarks.experiments.accuracy import (CENTRE_MAX_TOL_PX, CENTRE_RMS_TOL_PX, E2E_TOL_MM, EXACT_TOL_MM,
                                             RENDER_CENTROID_TOL_PX, TRACE_AREA_TOL, TRACE_CENTROID_TOL_PX)
-from benchmarks.readme_render import _DESIGN_LABELS, Records, _provenance, _verdict_met
+from benchmarks.readme_render import _CONDITION_LABELS, _DESIGN_LABELS, Records, _provenance, _verdict_met
 from benchmarks.report import _fmt
 from benchmarks.results import ResultsError
 
-__all__ = ["pipeline_accuracy_markdown", "renderer_accuracy_markdown"]
+__all__ = ["pipeline_accuracy_markdown", "renderer_accuracy_markdown", "identification_summary_markdown"]
 
 
 
@@ -148,3 +149,42 @@ def renderer_accuracy_markdown(records: Records, source: str) -> str:
              "| what | measured | goal | reproduce |", "| --- | --- | --- | --- |"]
     lines += [f"| {a} | {b} | {c} | `stereotactip bench accuracy`; `pytest tests/test_render.py` |" for a, b, c in rows]
     return "\n".join(lines)
+
+
+def identification_summary_markdown(records: Records, source: str) -> str:
+    """The certainty rule's headline: wrong ids over every trial and the worst pattern's coverage per condition of
+    one ``bench identification`` record, against :data:`benchmarks.experiments.identification.COVERAGE_GOALS`."""
+    from benchmarks.experiments.identification import COVERAGE_GOALS
+
+    rec = records["identification"]
+    rows = (rec.get("tables") or {}).get("conditions") or []
+    if not rows:
+        raise ResultsError(f"{source}: the identification record has no conditions table")
+    wrong = sum(int(r["wrong_ids"]) for r in rows)
+    trials = sum(int(r["trials"]) for r in rows)
+    parts = []
+    only_wrong = ("jitter_30", "rotation_30")       # almost nothing can be certain there: they test wrong ids only
+    for cond in [c for c in _CONDITION_LABELS if c not in ("defects_0", *only_wrong)]:
+        cells = [r for r in rows if r["condition"] == cond]
+        if not cells:
+            continue
+        worst = min(cells, key=lambda r: r["coverage_mean"])
+        goal = COVERAGE_GOALS.get(cond)
+        verdict = "" if goal is None else (f" (goal ≥ {100 * goal:g} %: "
+                                           f"{_verdict_met(all(r['coverage_mean'] >= goal for r in cells))})")
+        complete = _metric(rec, f"coverage_complete_neighbourhood_{cond}_min")
+        within = "" if complete is None else f", {100 * complete:.2f} % of the markers keeping a complete neighbourhood"
+        parts.append(f"{_CONDITION_LABELS[cond]} {100 * worst['coverage_mean']:.2f} % "
+                     f"({_DESIGN_LABELS.get(worst['design'], worst['design'])}{within}){verdict}")
+    hard = [r for r in rows if r["condition"] in only_wrong]
+    if hard:
+        spans = []
+        for c in only_wrong:
+            cov = [r["coverage_mean"] for r in hard if r["condition"] == c]
+            if cov:
+                spans.append(f"{_CONDITION_LABELS[c]} {100 * min(cov):.2f}–{100 * max(cov):.2f} %")
+        parts.append(" and ".join(spans) + " across the patterns (beyond what the rule can certify, these test that no "
+                     f"id is wrong: {sum(int(r['wrong_ids']) for r in hard)})")
+    return (f"From the {_provenance(rec, source)}: **{wrong} wrong ids** in {trials:,} seeded trials "
+            f"(goal: zero — {_verdict_met(wrong == 0)}). Coverage, the worst pattern's mean over trials: "
+            + "; ".join(parts) + ".")

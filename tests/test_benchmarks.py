@@ -525,7 +525,7 @@ def test_readme_headline_blocks_match_the_records_they_were_written_from():
             blocks[name], where_is[name] = block, rel
     assert {"gate-figures", "twin-speed", "identification-coverage", "tracking-identity",
             "quick-experiments", "full-suite", "oracle-vs-estimated", "error-sources", "physics-checks",
-            "tactip-validation", "pipeline-accuracy", "renderer-accuracy"} <= set(blocks)
+            "tactip-validation", "pipeline-accuracy", "renderer-accuracy", "identification-summary"} <= set(blocks)
     for name, text in blocks.items():
         if name == "gate-figures":      # the quick run's gate figures, from the same kept records
             source, *other = re.findall(r"figures from `([^`]+)`", text)

@@ -52,6 +52,9 @@ import numpy as np
 from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
+#: The coverage each defect condition must reach (mean over trials, every pattern), with zero wrong ids: a marker
+#: that cannot be identified is reported unmatched, and these bound how often that may happen.
+COVERAGE_GOALS = {"defects_3": 0.99, "defects_10": 0.95}
 PATTERN_DESIGNS = ("hexagon61_sep354", "hexagon127", "hexagon217_sep180", "square121", "circular217_dome")
 DEFECT_RATES = (0, 1, 3, 5, 10)
 CONDITIONS = tuple(f"defects_{r}" for r in DEFECT_RATES) + ("occlusion_15", "occlusion_15_rest", "jitter_30",
@@ -310,8 +313,8 @@ def run(ctx: Context) -> Result:
             wr = [next(x["wrong_ids"] for x in rows_of(f"defects_{r}") if x["design"] == design.name) for r in rates]
             axes[0].plot(rates, cov, "o-", color=f"C{k}", label=design.name, ms=3)
             axes[1].plot(rates, wr, "o-", color=f"C{k}", label=design.name, ms=3)
-        axes[0].axhline(0.99, color="k", ls=":", lw=0.6)
-        axes[0].axhline(0.95, color="k", ls=":", lw=0.6)
+        for goal in COVERAGE_GOALS.values():
+            axes[0].axhline(goal, color="k", ls=":", lw=0.6)
         axes[0].set_xlabel("missing = spurious blobs (% of markers)")
         axes[0].set_ylabel("coverage (correct ids / present)")
         axes[1].set_xlabel("missing = spurious blobs (% of markers)")
