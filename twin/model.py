@@ -38,6 +38,10 @@ indenter; :class:`twin.physics.SkinSim` runs it.
 MuJoCo's world frame is the sensor frame rotated 180° about x (the sensor looks down at the
 indenter on the desk): world = (x, -y, -z)_sensor (:data:`_FLIP`). Lengths cross to metres only via
 :mod:`twin.units`.
+
+The module is ~400 lines and stays whole: :func:`build` is split into its assembly steps (options, vertex bodies,
+flexes, indenter, the index arrays the sim needs), and the solver options and volumetric terms it applies are the
+knobs those steps read; moving them out would leave each half depending on the other's constants.
 """
 
 from __future__ import annotations
@@ -83,6 +87,9 @@ DRIVEN_INDENTER_MASS_KG = 1e5     # with friction: the indenter's mass, >> the s
                                   # 0.018-0.024 mm, at 1e4 and 1e6 the same within 0.001 mm
 # collision bits: vertex spheres (2/1) meet the height field (1/2); outer faces (4/8) meet surface spheres (8/4)
 _BIT_FACES, _BIT_SPHERES = 4, 8
+#: Frictionless contacts in MuJoCo's sense (condim 1): friction acts through the stick constraints of twin.stick,
+#: not through MuJoCo's friction cone (soft: the skin under a tip crept back where contact mechanics says stick).
+_CONDIM = 1
 
 
 def cache_key(design: SensorDesign, spec: MeshSpec, indenter: Indenter, timestep_s: float, friction: float):
@@ -116,24 +123,60 @@ def load(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec, 
 def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec, timestep_s: float,
           friction: float):
     """Compile the skin module's model (module notes): ``(model, derived)`` with ``derived`` the index arrays
-    the sim needs beside it, keyed by the sim's attribute names (:data:`_DERIVED`)."""
+    the sim needs beside it, keyed by the sim's attribute names (:data:`_DERIVED`).
+
+    The model is assembled in MuJoCo's spec in a fixed order — options, one body per free mesh vertex, the skin
+    and gel flexes (and the outer faces' contact flex), the indenter with its surface spheres and stick
+    equalities — because that order numbers the bodies, joints and equalities the sim indexes."""
     import mujoco as mj
 
-    m, d = mesh, design
-    dt = timestep_s
-    V = len(m.nodes_mm)
-    X_m = units.mm_to_m(m.nodes_mm * _FLIP)
+    X_m = units.mm_to_m(mesh.nodes_mm * _FLIP)
+    kd, ks = _nodal_stiffness(mesh, design, X_m)
+    mjspec = mj.MjSpec()
+    mjspec.modelname = f"skin_{design.name}"
+    _set_options(mjspec.option, spec, timestep_s, friction)
+    mjspec.memory = 256 * 1024 * 1024
+    is_top = np.zeros(len(X_m), bool)
+    is_top[mesh.top] = True
+    free = np.nonzero(~mesh.pinned)[0]
+    vertbody, vert = _add_vertex_bodies(mjspec, mesh, spec, X_m, kd, is_top, timestep_s, friction)
+    _add_flexes(mjspec, mesh, design, spec, vertbody, vert, friction)
+    roller = mesh.roller if mesh.roller is not None else np.zeros(len(X_m), bool)
+    # the outer vertices that can stick to the indenter: not those a roller rim holds in x-y already
+    stick_candidates = free[is_top[free] & ~roller[free]]
+    hmin, n_surface_spheres = _add_indenter(mjspec, indenter, spec, stick_candidates, timestep_s, friction)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # MuJoCo's note on flexes without equality constraints
+        model = mjspec.compile()
+    qadr = model.jnt_qposadr[:len(free) * 3].reshape(-1, 3)
+    derived = {"_free": free, "_qadr": qadr, "_hmin": hmin, "_n_surface_spheres": n_surface_spheres,
+               "_vol": build_volumetric(design, mesh, spec, X_m, free, qadr)}
+    derived.update(_stick_indices(model, free, stick_candidates, ks, friction))
+    derived.update(_column_indices(model, mesh, X_m, free, is_top))
+    return model, derived
+
+
+def _nodal_stiffness(mesh: _Mesh, design: SensorDesign, X_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, the diagonal stiffness of its elements (λ + 2μ)·V·|∇N|² (what its mass is scaled by, so the
+    contact is as stiff as the element behind it) and its shear part μ·V·|∇N|² (a surface vertex's stiffness
+    against sliding along the indenter), N·m⁻¹."""
+    V = len(X_m)
     kd = np.zeros(V)
-    ks = np.zeros(V)      # shear part: a surface vertex's stiffness against sliding along the indenter
-    for tets, mat in ((m.tets_skin, materials.skin_material(d)), (m.tets_gel, materials.gel_material(d))):
+    ks = np.zeros(V)
+    for tets, mat in ((mesh.tets_skin, materials.skin_material(design)), (mesh.tets_gel, materials.gel_material(design))):
         E, nu = units.mpa_to_pa(mat.youngs_modulus_mpa), mat.poisson_ratio
         lam, mu = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
         vol, g, _ = _grad_shape(X_m[tets])
         np.add.at(kd, tets.ravel(), ((lam + 2 * mu) * vol[:, None] * np.sum(g * g, axis=2)).ravel())
         np.add.at(ks, tets.ravel(), (mu * vol[:, None] * np.sum(g * g, axis=2)).ravel())
-    mjspec = mj.MjSpec()
-    mjspec.modelname = f"skin_{d.name}"
-    o = mjspec.option
+    return kd, ks
+
+
+def _set_options(o, spec: MeshSpec, dt: float, friction: float) -> None:
+    """The discrete integrator (flex elasticity needs it) with the CG solver, no gravity, and the volumetric and
+    friction solver options."""
+    import mujoco as mj
+
     o.integrator = mj.mjtIntegrator.mjINT_DISCRETE
     o.solver = mj.mjtSolver.mjSOL_CG    # ~3x faster a step than Newton on the flex
     o.timestep = dt
@@ -141,22 +184,26 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
     o.tolerance = 1e-6
     volumetric_solver_options(spec, o)
     friction_solver_options(friction, o)
-    mjspec.memory = 256 * 1024 * 1024
-    is_top = np.zeros(V, bool)
-    is_top[m.top] = True
-    condim = 1            # friction acts through the stick constraints (_update_stick), not MuJoCo's cone
+
+
+def _add_vertex_bodies(mjspec, mesh: _Mesh, spec: MeshSpec, X_m: np.ndarray, kd: np.ndarray, is_top: np.ndarray,
+                       dt: float, friction: float) -> tuple[list[str], np.ndarray]:
+    """One body on three slide joints per free vertex (a roller rim's limited in x-y), its mass scaled by its
+    stiffness, and a contact sphere on each outer one; pinned vertices belong to the world. Returns the flexes'
+    ``vertbody`` names and their vertex positions relative to those bodies."""
+    import mujoco as mj
+
     r_m = float(units.mm_to_m(CONTACT_RADIUS_MM))
-    vertbody, vert = [], np.zeros((V, 3))
-    free = np.nonzero(~m.pinned)[0]
-    for n in range(V):
-        if m.pinned[n]:
+    vertbody, vert = [], np.zeros((len(X_m), 3))
+    for n in range(len(X_m)):
+        if mesh.pinned[n]:
             vertbody.append("world")
             vert[n] = X_m[n]
             continue
         b = mjspec.worldbody.add_body(name=f"v{n}", pos=X_m[n].tolist())
         for ax, axis in zip("xyz", ((1, 0, 0), (0, 1, 0), (0, 0, 1))):
             jnt = b.add_joint(type=mj.mjtJoint.mjJNT_SLIDE, axis=list(axis), name=f"v{n}{ax}")
-            if m.roller is not None and m.roller[n] and ax != "z":
+            if mesh.roller is not None and mesh.roller[n] and ax != "z":
                 # a roller rim holds the vertex on the mount's wall: x and y limited to their rest values
                 jnt.limited, jnt.range = True, [-ROLLER_SLACK_M, ROLLER_SLACK_M]
                 jnt.solref_limit = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]   # as stiff as a contact
@@ -167,11 +214,20 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         vertbody.append(f"v{n}")
         if is_top[n]:
             gm = b.add_geom(type=mj.mjtGeom.mjGEOM_SPHERE, size=[r_m, 0, 0], pos=[0, 0, r_m])
-            gm.mass, gm.contype, gm.conaffinity, gm.condim = 0.0, 2, 1, condim
+            gm.mass, gm.contype, gm.conaffinity, gm.condim = 0.0, 2, 1, _CONDIM
             gm.friction = [friction, 0.005, 0.0001]
             gm.group = 3
-    for name, tets, mat in (("skin", m.tets_skin, materials.skin_material(d)),
-                            ("gel", m.tets_gel, materials.gel_material(d))):
+    return vertbody, vert
+
+
+def _add_flexes(mjspec, mesh: _Mesh, design: SensorDesign, spec: MeshSpec, vertbody: list[str], vert: np.ndarray,
+                friction: float) -> None:
+    """The skin's and the gel's tetrahedra as two elastic 3-D flexes (no collision of their own) and, with face
+    contact, the outer faces as a 2-D flex without stiffness that the indenter's surface spheres collide with."""
+    import mujoco as mj
+
+    for name, tets, mat in (("skin", mesh.tets_skin, materials.skin_material(design)),
+                            ("gel", mesh.tets_gel, materials.gel_material(design))):
         f = mjspec.add_flex()
         f.name, f.dim = name, 3
         f.vertbody = vertbody
@@ -184,18 +240,25 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         f.selfcollide = mj.mjtFlexSelf.mjFLEXSELF_NONE
         f.radius = 1e-6
     if spec.face_contact:
-        # the outer faces as a 2-D flex without stiffness: what the indenter's surface spheres collide with
         f = mjspec.add_flex()
         f.name, f.dim = "outer_faces", 2
         f.vertbody = vertbody
         f.vert = vert.ravel().tolist()
-        f.elem = _face_contact_faces(m).ravel().tolist()
+        f.elem = _face_contact_faces(mesh).ravel().tolist()
         f.young, f.elastic2d = 0.0, 0
-        f.contype, f.conaffinity, f.condim = _BIT_FACES, _BIT_SPHERES, condim
+        f.contype, f.conaffinity, f.condim = _BIT_FACES, _BIT_SPHERES, _CONDIM
         f.friction = [friction, 0.005, 0.0001]
         f.radius = 1e-6
         f.selfcollide = mj.mjtFlexSelf.mjFLEXSELF_NONE
-    # indenter: height field of its own-frame contact face on a mocap body
+
+
+def _add_indenter(mjspec, indenter: Indenter, spec: MeshSpec, stick_candidates: np.ndarray, dt: float,
+                  friction: float) -> tuple[float, int]:
+    """The indenter: a height field of its own-frame contact face (and, with face contact, spheres on its convex
+    and steep parts) on a mocap body, or with friction on a driven body with the stick equalities of
+    ``stick_candidates``. Returns the height field's lowest point (mm) and the number of surface spheres."""
+    import mujoco as mj
+
     x, y, z = indenter.grid(COLLISION_SPACING_MM)
     z = np.where(np.isfinite(z), z, np.nanmin(z))
     hmin = float(z.min())
@@ -203,10 +266,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
     hx, hy = indenter.half_size_mm
     mjspec.add_hfield(name="indenter", size=[float(units.mm_to_m(hx)), float(units.mm_to_m(hy)),
                                            float(units.mm_to_m(span)), float(units.mm_to_m(2.0))],
-                    nrow=z.shape[0], ncol=z.shape[1], userdata=((z - hmin) / span).ravel().tolist())
-    # the outer vertices that can stick to the indenter: not those a roller rim holds in x-y already
-    roller = m.roller if m.roller is not None else np.zeros(V, bool)
-    stick_candidates = free[is_top[free] & ~roller[free]]
+                      nrow=z.shape[0], ncol=z.shape[1], userdata=((z - hmin) / span).ravel().tolist())
     if friction > 0:
         # Friction acts on relative velocity, and a mocap body has none (it is teleported): the skin would
         # be held where it is, not dragged along. With friction the indenter is a heavy body on three
@@ -234,7 +294,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         body = mjspec.worldbody.add_body(name="indenter", mocap=True)
     g = body.add_geom(type=mj.mjtGeom.mjGEOM_HFIELD, hfieldname="indenter",
                       pos=[0, 0, float(units.mm_to_m(hmin))])
-    g.contype, g.conaffinity, g.condim, g.priority = 1, 2, condim, 1
+    g.contype, g.conaffinity, g.condim, g.priority = 1, 2, _CONDIM, 1
     g.friction = [friction, 0.005, 0.0001]
     g.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
     g.solimp = CONTACT_SOLIMP
@@ -245,16 +305,17 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         n_surface_spheres = int(len(centres))
         for c, r_s in zip(units.mm_to_m(centres), units.mm_to_m(radii)):
             gs = body.add_geom(type=mj.mjtGeom.mjGEOM_SPHERE, size=[float(r_s), 0, 0], pos=c.tolist())
-            gs.contype, gs.conaffinity, gs.condim, gs.priority = _BIT_SPHERES, _BIT_FACES, condim, 1
+            gs.contype, gs.conaffinity, gs.condim, gs.priority = _BIT_SPHERES, _BIT_FACES, _CONDIM, 1
             gs.friction = [friction, 0.005, 0.0001]
             gs.solref = [CONTACT_TIMECONST_STEPS * dt, CONTACT_DAMPRATIO]
             gs.solimp = CONTACT_SOLIMP
             gs.mass, gs.group = 0.0, 3
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")   # MuJoCo's note on flexes without equality constraints
-        model = mjspec.compile()
-    qadr = model.jnt_qposadr[:len(free) * 3].reshape(-1, 3)
-    vol = build_volumetric(design, mesh, spec, X_m, free, qadr)
+    return hmin, n_surface_spheres
+
+
+def _stick_indices(model, free: np.ndarray, stick_candidates: np.ndarray, ks: np.ndarray, friction: float) -> dict:
+    """With friction: the driven indenter's joint addresses and, per outer vertex that can stick, its index among
+    the free vertices, its shear stiffness and its two equalities (x, y); empty without friction."""
     ind_qadr = ind_dadr = None
     stick_nodes = stick_free = np.zeros(0, np.int64)
     stick_eq = np.zeros((0, 2), np.int64)
@@ -269,30 +330,31 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
         stick_k = ks[stick_nodes]
         stick_eq = np.arange(2 * len(stick_nodes)).reshape(-1, 2)   # the model's only equalities: (x, y) per vertex
         assert model.neq == stick_eq.size
+    return {"_ind_qadr": ind_qadr, "_ind_dadr": ind_dadr, "_stick_nodes": stick_nodes, "_stick_free": stick_free,
+            "_stick_eq": stick_eq, "_stick_k": stick_k}
+
+
+def _column_indices(model, mesh: _Mesh, X_m: np.ndarray, free: np.ndarray, is_top: np.ndarray) -> dict:
+    """For the direct solves: the contact geom of each free outer vertex, the rest world positions (m) of the free
+    vertices, and the outer-surface and window vertex of each vertex's column (the mesh is a tensor grid: columns
+    share x-y)."""
     top_geom = {}
     for n in free[is_top[free]]:
         top_geom[model.body(f"v{n}").geomadr[0]] = n
-    # direct solves: rest world positions (m) of the free vertices, the outer-surface vertex and the
-    # window vertex of each vertex's column (the mesh is a tensor grid: columns share x-y)
-    rest_free_m = X_m[free]
-    key = np.round(m.nodes_mm[:, :2], 6)
+    key = np.round(mesh.nodes_mm[:, :2], 6)
     _, col = np.unique(key, axis=0, return_inverse=True)
     col = col.ravel()
     top_of = np.full(col.max() + 1, -1)
-    top_of[col[m.top]] = m.top
+    top_of[col[mesh.top]] = mesh.top
     bottom_of = np.full(col.max() + 1, -1)
     zmin = np.full(col.max() + 1, np.inf)
-    for i, (c, z) in enumerate(zip(col, m.nodes_mm[:, 2])):
+    for i, (c, z) in enumerate(zip(col, mesh.nodes_mm[:, 2])):
         if z < zmin[c]:
             zmin[c], bottom_of[c] = z, i
-    col_top, col_bottom = top_of[col], bottom_of[col]
-    is_free_top = np.zeros(V, bool)
+    is_free_top = np.zeros(len(X_m), bool)
     is_free_top[free] = is_top[free]
-    return model, {"_free": free, "_qadr": qadr, "_top_geom": top_geom, "_hmin": hmin,
-                   "_rest_free_m": rest_free_m, "_col_top": col_top, "_col_bottom": col_bottom,
-                   "_is_free_top": is_free_top, "_n_surface_spheres": n_surface_spheres, "_ind_qadr": ind_qadr,
-                   "_ind_dadr": ind_dadr, "_stick_nodes": stick_nodes, "_stick_free": stick_free,
-                   "_stick_eq": stick_eq, "_stick_k": stick_k, "_vol": vol}
+    return {"_top_geom": top_geom, "_rest_free_m": X_m[free], "_col_top": top_of[col], "_col_bottom": bottom_of[col],
+            "_is_free_top": is_free_top}
 
 
 # ----- nodal volumetric stiffness (twin.volumetric) ------------------------------------------
