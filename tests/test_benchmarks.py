@@ -738,6 +738,60 @@ def _validate_summary(twin: float = 2.17, stat: float = 4.91, ridge: float = 1.1
     return summary
 
 
+def test_pipeline_and_renderer_blocks_decide_each_verdict_from_the_record():
+    """The Pipeline and renderer tables read each figure of the kept accuracy record against the tolerance the
+    accuracy benchmark derives: a figure beyond it turns that row's verdict to "not met" and leaves the others; a
+    record without real frames says so; the Pipeline table needs the latency record beside it."""
+    import copy
+
+    from benchmarks.experiments.accuracy import E2E_TOL_MM, TRACE_CENTROID_TOL_PX
+    from benchmarks.readme_blocks import load_block_records, render_block
+
+    kept = load_block_records(Path(__file__).resolve().parents[1] / "docs" / "records" / "pipeline-accuracy")
+
+    def rows(name, records) -> dict[str, str]:
+        text = render_block(name, records, "docs/records/x")
+        cells = [[c.strip() for c in line.split("|")[1:-1]] for line in text.splitlines()
+                 if line.startswith("| ") and not line.startswith("| ---")]
+        return {r[0].split(",")[0].split(" (")[0]: r[2] for r in cells[1:]}
+
+    ok = rows("pipeline-accuracy", kept)
+    assert all(v.endswith("**met**") for k, v in ok.items() if not k.startswith("latency"))
+    worse = copy.deepcopy(kept)
+    worse["accuracy"]["metrics"]["e2e_max_mm"]["value"] = 1.5 * E2E_TOL_MM
+    worse["accuracy"]["metrics"]["render_trace_offset_max_px"]["value"] = 1.5 * TRACE_CENTROID_TOL_PX
+    bad = rows("pipeline-accuracy", worse)
+    assert [k for k in bad if bad[k] != ok[k]] == ["end-to-end 3-D error"] and bad["end-to-end 3-D error"].endswith("**not met**")
+    assert rows("renderer-accuracy", worse)["per-vertex refraction vs a per-pixel ray-traced reference"].endswith("**not met**")
+    for m in ("real_frames", "real_found_min", "real_found_max", "real_in_glare"):
+        del worse["accuracy"]["metrics"][m]
+    assert "not measured" in render_block("pipeline-accuracy", worse, "docs/records/x")
+    with pytest.raises(res.ResultsError, match="latency"):
+        render_block("pipeline-accuracy", {"accuracy": kept["accuracy"]}, "docs/records/x")
+
+
+def test_identification_summary_names_the_worst_pattern_and_each_goal_verdict():
+    """The certainty rule's headline counts wrong ids over every trial and gives each condition's worst pattern;
+    one pattern under a coverage goal, or one wrong id anywhere, turns that verdict to "not met"."""
+    import copy
+
+    from benchmarks.readme_blocks import load_block_records, render_block
+
+    kept = load_block_records(Path(__file__).resolve().parents[1] / "docs" / "records" / "identification-coverage")
+    text = render_block("identification-summary", kept, "docs/records/x")
+    assert "**0 wrong ids** in 50,000 seeded trials (goal: zero — **met**)" in text
+    assert "(goal ≥ 95 %: **met**)" in text and "(goal ≥ 99 %: **met**)" in text
+    worse = copy.deepcopy(kept)
+    rows = worse["identification"]["tables"]["conditions"]
+    cell = next(r for r in rows if r["condition"] == "defects_10" and r["design"] == "hexagon127")
+    cell["coverage_mean"] = 0.94
+    next(r for r in rows if r["condition"] == "rotation_30")["wrong_ids"] = 1
+    text = render_block("identification-summary", worse, "docs/records/x")
+    assert "**1 wrong ids** in 50,000 seeded trials (goal: zero — **not met**)" in text
+    assert "10 % + 10 % 94.00 % (hex 127) (goal ≥ 95 %: **not met**)" in text
+    assert "these test that no id is wrong: 1)" in text
+
+
 def test_tactip_validation_block_is_written_from_a_validate_summary(tmp_path):
     """The tactip-validation block reads validate's summary.json as it stands: the held-out RMS table with the
     fitted parameter counts, each goal's verdict as validate decided it (twin ≤ 0.5× static, ≤ 1.5× ridge, the
