@@ -11,7 +11,6 @@ from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity.reacquire import reacquire
-from pipeline.vision.identity.seed import SEED_BEST
 from pipeline.vision.identity.constants import R_FEW
 from pipeline.vision.identity.temporal import expected_positions
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
@@ -37,19 +36,6 @@ SEED_BELOW = 0.9
 #: rotations: at most ~3,900 for the largest built-in pattern); a cap on its memory, (H, N, 2) floats.
 SPREAD_HYPOTHESES = 4_000
 
-#: Placements of a circular pattern's registration certified in turn, best first, when the first
-#: :data:`SEED_BEST` leave the view lost. An off-centre press bends the rings about the centre, so the
-#: similarity placements centred one or two markers off fit as many slots as the true one: in the
-#: pressed-stereo views of the identification benchmark read to less than half (27 views in 150
-#: trials), the first placement certified right ranked 9th-31st of 40 in 20 views (none in 7); each
-#: costs ~1.5 ms (consistency, growth, certification). 8 -> 24 raised pressed circular217_dome coverage
-#: from 88.1 to 96.5 % (1,000 trials, no wrong id).
-CIRCULAR_PLACEMENTS = 24
-#: ... tried only while no candidate certifies this fraction of :data:`SEED_BELOW`'s count: a view with
-#: 10 % of its markers missing, read to 97 %, stays below SEED_BELOW and would run every placement for
-#: nothing (the guard cost 0.07 points of that coverage: 96.50 -> 96.43 %).
-CIRCULAR_LOST = 0.5
-
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
                  msgs: list[str], previous=None, history=None) -> tuple[np.ndarray, np.ndarray]:
@@ -59,8 +45,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     by growth; when that leaves markers unidentified, also to the placements of a lattice
     registration independent of ring peeling, anchored in the middle of the blobs and, for a
     hexagonal or square lattice still read below :data:`SEED_BELOW` with no id carried from a previous
-    frame, half-way out (``register_seed(spread=True)``: a sharp press crowds the middle), and for a
-    circular pattern still lost, the next-best placements (:data:`CIRCULAR_PLACEMENTS`). Markers
+    frame, half-way out (``register_seed(spread=True)``: a sharp press crowds the middle). Markers
     still unidentified are then followed from the previous frame
     (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are re-acquired from
     the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
@@ -102,18 +87,13 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     # the registration anchored in the middle, then (hexagonal, square) the one anchored half-way out: it
     # costs 35-90 ms a view where it runs (hexagon217, square121), so it is a first frame's (or one after
     # everything was lost); in a sequence the previous frame's ids carry the reading
-    registrations = [({}, 0)]
+    registrations = [{}]
     if lat.translation_lattice and not carries:
-        registrations.append(({"spread": True, "max_hypotheses": SPREAD_HYPOTHESES}, 0))
-    if not lat.translation_lattice and not carries:
-        # (circular) the next-best placements, only for a view still lost: ~1.5 ms each, so a first frame's
-        # search too, like the one anchored half-way out
-        registrations.append(({"n_best": CIRCULAR_PLACEMENTS}, SEED_BEST))
-    for kw, skip in registrations:
-        best = max(map(count, cands))
-        if best >= enough or (skip and best >= CIRCULAR_LOST * enough):
+        registrations.append({"spread": True, "max_hypotheses": SPREAD_HYPOTHESES})
+    for kw in registrations:
+        if max(map(count, cands)) >= enough:
             break
-        for p in register_seed(pts, lat, **kw)[skip:]:
+        for p in register_seed(pts, lat, **kw):
             cands.append(run(p))
             if count(cands[-1]) >= enough:
                 break

@@ -11,9 +11,9 @@ import numba
 import numpy as np
 
 from pipeline.vision.identity.consistency import _consistency
-from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_BENT,
-                                                RING_BENT_RATIO, RING_CENTRE, RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM,
-                                                RING_MIN_MARKERS, RING_ROUND, RING_SHAPE)
+from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_CENTRE,
+                                                RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM, RING_MIN_MARKERS,
+                                                RING_ROUND, RING_SHAPE)
 from pipeline.vision.identity.fits import _design_half, _fit, _fit_sums, _gather, _image_half
 from pipeline.vision.identity.neighbours import _adj
 from pipeline.vision.nearest import nearest
@@ -146,10 +146,8 @@ def _centre_holds(pts, slot_of, members, lat) -> bool:
     moves the rings' centres apart by ~0.1 radius) and their shape (linear parts proportional to
     within :data:`RING_SHAPE`: a press changes each ring's radius, a camera's perspective is common to all).
     About a marker of ring 1 the pattern also shows rings of about six and twelve markers, but its
-    third ring is not eighteen markers 20 deg apart. Rings an off-centre press bends past these
-    affine gates are judged by one smooth map instead (:func:`_bent_rings_hold`)."""
-    return (_centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
-            or _bent_rings_hold(pts, slot_of, members, lat))
+    third ring is not eighteen markers 20 deg apart."""
+    return _centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
 
 
 @numba.njit(cache=True)
@@ -235,178 +233,6 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
             if math.hypot(pts[b, 0] - cen[0, 0], pts[b, 1] - cen[0, 1]) > ring_centre * rad1:
                 return False
     return True
-
-
-#: Coefficients of the smooth map of :func:`_bent_kernel`: a polynomial of degree 4 in design x, y.
-_BENT_TERMS = 15
-
-
-@numba.njit(inline="always")
-def _bent_terms(x, y, f):
-    """The terms of the degree-4 polynomial map (1, x, y, x^2, ..., y^4) at design (x, y) into ``f``."""
-    k = 0
-    for d in range(5):
-        for j in range(d + 1):
-            f[k] = x ** (d - j) * y ** j
-            k += 1
-
-
-@numba.njit(cache=True)
-def _bent_residual(pts, slots, blobs, m, xy, c0x, c0y, scale, out):
-    """Least-squares degree-4 polynomial map design -> image through the points ``0..m-1`` of (slots,
-    blobs); returns its largest residual (px), ``inf`` when the fit is undetermined. ``out`` (2,) gets
-    the image of the design centre (c0x, c0y)."""
-    nf = _BENT_TERMS
-    if m < nf + 3:
-        # too few points to leave residuals (rings 1-3 at the centre test's coverage give 24)
-        return np.inf
-    M = np.zeros((nf, nf + 2))
-    f = np.empty(nf)
-    ou = pts[blobs[0], 0]
-    ov = pts[blobs[0], 1]
-    for i in range(m):
-        _bent_terms((xy[slots[i], 0] - c0x) / scale, (xy[slots[i], 1] - c0y) / scale, f)
-        u = pts[blobs[i], 0] - ou
-        v = pts[blobs[i], 1] - ov
-        for a in range(nf):
-            for b in range(nf):
-                M[a, b] += f[a] * f[b]
-            M[a, nf] += f[a] * u
-            M[a, nf + 1] += f[a] * v
-    # Gauss-Jordan with partial pivoting on the normal equations (15 x 15, two right-hand sides)
-    floor = 0.0
-    for a in range(nf):
-        floor = max(floor, M[a, a])
-    floor *= 1e-10
-    for col in range(nf):
-        p = col
-        for r in range(col + 1, nf):
-            if abs(M[r, col]) > abs(M[p, col]):
-                p = r
-        if not abs(M[p, col]) > floor:
-            return np.inf
-        if p != col:
-            for c in range(nf + 2):
-                M[col, c], M[p, c] = M[p, c], M[col, c]
-        piv = M[col, col]
-        for c in range(col, nf + 2):
-            M[col, c] /= piv
-        for r in range(nf):
-            if r != col and M[r, col] != 0.0:
-                g = M[r, col]
-                for c in range(col, nf + 2):
-                    M[r, c] -= g * M[col, c]
-    worst = 0.0
-    for i in range(m):
-        _bent_terms((xy[slots[i], 0] - c0x) / scale, (xy[slots[i], 1] - c0y) / scale, f)
-        pu = 0.0
-        pv = 0.0
-        for a in range(nf):
-            pu += f[a] * M[a, nf]
-            pv += f[a] * M[a, nf + 1]
-        worst = max(worst, math.hypot(pts[blobs[i], 0] - ou - pu, pts[blobs[i], 1] - ov - pv))
-    out[0] = ou + M[0, nf]
-    out[1] = ov + M[0, nf + 1]
-    return worst
-
-
-@numba.njit(cache=True)
-def _inner_rings(slot_of, members, ring_map, layer_of, slots, blobs):
-    """The members whose slot ``ring_map`` sends into rings 0-3 (their mapped slots into ``slots``,
-    blobs into ``blobs``); their count, or -1 when a ring 1-3 keeps fewer than the centre test's
-    coverage (:data:`RING_COVERAGE`, :data:`RING_MIN_MARKERS`)."""
-    cnt = np.zeros(4, np.int64)
-    size = np.zeros(4, np.int64)
-    for s in range(len(layer_of)):
-        if layer_of[s] < 4:
-            size[layer_of[s]] += 1
-    m = 0
-    for b in members:
-        t = ring_map[slot_of[b]]
-        if t >= 0 and layer_of[t] < 4:
-            slots[m] = t
-            blobs[m] = b
-            cnt[layer_of[t]] += 1
-            m += 1
-    for k in range(1, 4):
-        if cnt[k] < max(int(math.ceil(RING_COVERAGE * size[k])), RING_MIN_MARKERS):
-            return -1
-    return m
-
-
-@numba.njit(cache=True)
-def _bent_kernel(pts, slot_of, members, xy, layer_of, recentre, scale, bent, ratio):
-    """:func:`_bent_rings_hold` (compiled)."""
-    c0x = 0.0
-    c0y = 0.0
-    for s in range(len(layer_of)):
-        if layer_of[s] == 0:
-            c0x, c0y = xy[s, 0], xy[s, 1]
-    ident = np.arange(len(layer_of))
-    slots = np.empty(len(members), np.int64)
-    blobs = np.empty(len(members), np.int64)
-    centre = np.empty(2)
-    m = _inner_rings(slot_of, members, ident, layer_of, slots, blobs)
-    if m < 0:
-        return False
-    own = _bent_residual(pts, slots, blobs, m, xy, c0x, c0y, scale, centre)
-    if not own < np.inf:
-        return False
-    rad1 = 0.0
-    n1 = 0
-    for i in range(m):
-        if layer_of[slots[i]] == 1:
-            rad1 += math.hypot(pts[blobs[i], 0] - centre[0], pts[blobs[i], 1] - centre[1])
-            n1 += 1
-    rad1 /= n1
-    if own > bent * rad1:
-        return False
-    for a in range(len(recentre)):
-        m = _inner_rings(slot_of, members, recentre[a], layer_of, slots, blobs)
-        if m < 0:
-            continue
-        if own > ratio * _bent_residual(pts, slots, blobs, m, xy, c0x, c0y, scale, centre):
-            return False
-    return True
-
-
-_RECENTRE: dict = {}
-
-
-def _recentre_maps(lat) -> np.ndarray:
-    """(A, N) slot -> slot maps of the readings of a circular pattern centred on a marker of ring 1 or
-    ring 2 instead of the centre: each slot goes to the slot nearest its design position moved by the
-    offset of that marker from the centre, when within half a pitch (-1 otherwise, and where two
-    slots land on one)."""
-    key = id(lat)
-    if key not in _RECENTRE:
-        from scipy.spatial import cKDTree
-
-        xy = lat.xy
-        c0 = xy[np.flatnonzero(lat.layer_of == 0)[0]]
-        tree = cKDTree(xy)
-        maps = []
-        for s in np.flatnonzero((lat.layer_of == 1) | (lat.layer_of == 2)):
-            d, j = tree.query(xy - (xy[s] - c0))
-            m = np.where(d < 0.5 * lat.pitch, j, -1).astype(np.int64)
-            u, cnt = np.unique(m[m >= 0], return_counts=True)
-            m[np.isin(m, u[cnt > 1])] = -1
-            maps.append(m)
-        _RECENTRE[key] = (lat, np.ascontiguousarray(np.array(maps, np.int64).reshape(-1, len(xy))))
-    return _RECENTRE[key][1]
-
-
-def _bent_rings_hold(pts, slot_of, members, lat) -> bool:
-    """The centre test for a pressed view whose rings an off-centre press has bent past
-    :func:`_centre_kernel`'s per-ring affine gates: rings 0-3, as identified, are one smooth (degree-4
-    polynomial) image of the design's rings to within :data:`RING_BENT` of ring 1's radius, and fit it
-    at least 1 / :data:`RING_BENT_RATIO` times better than every reading of the same blobs centred on
-    a marker of ring 1 or 2 instead."""
-    xy = lat.xy
-    c0 = xy[np.flatnonzero(lat.layer_of == 0)[0]]
-    scale = float(np.max(np.hypot(*(xy[lat.layer_of == 3] - c0).T)))
-    return _bent_kernel(pts, slot_of, np.asarray(members, np.int64), xy, lat.layer_of, _recentre_maps(lat), scale,
-                        RING_BENT, RING_BENT_RATIO)
 
 
 def _anchored(pts, slot_of, members, lat) -> bool:

@@ -76,26 +76,6 @@ RING_ROUND = 0.22
 #: ... and their centres must agree to within this fraction of ring 1's radius (a reading centred
 #: on a marker of ring 1 is a whole radius off).
 RING_CENTRE = 0.3
-#: A circular pattern's rings 0-3 that fail the per-ring affine gates above may still be one smooth
-#: image of the design's rings: an off-centre press (a Gaussian dent of sigma 3-6 mm, 1.7-3.3 ring
-#: spacings, up to 0.3 pattern radii off the axis) bends rings 1-3 (radius 3 spacings) by more than
-#: an affine map of each ring absorbs, but smoothly, while a reading shifted by a marker puts the
-#: lattice-like neighbourhood of another marker (rings of 6, 12, 18 on a hexagon) where circles of
-#: equally spaced markers should be. So a least-squares polynomial map of degree 4 in the design x-y
-#: is fitted through every identified marker of rings 0-3 (at least the coverage above), and must leave
-#: none farther from its prediction than this fraction of ring 1's mean radius. Measured on the
-#: identification benchmark's circular217_dome readings (pressed stereo, two seeds, and the defect and
-#: occlusion conditions): correct readings <= 0.061 (5,309 readings; the per-ring affine fits leave up
-#: to 0.48 on the pressed ones), readings centred on a marker of ring 1 that reached the test (33, each
-#: locally consistent over up to ~150 markers, their rings cut to about the coverage allowed) >= 0.098.
-RING_BENT = 0.08
-#: ... and that map must fit the reading's rings at least 1 / RING_BENT_RATIO times better (largest
-#: residual, px) than it fits every reading of the same blobs centred on a marker of ring 1 or 2
-#: instead (each slot moved by that marker's offset from the centre, to the nearest slot): correct
-#: readings <= 0.17 of the best such alternative in 99 % (one of 5,309 at 0.305, withdrawn), the 33
-#: readings centred on a marker of ring 1 >= 0.40. Both tests together leave those readings at least
-#: 1.46 times beyond one of the two gates.
-RING_BENT_RATIO = 0.3
 #: Radius (design separations) about its anchor slot within which a similarity placement proposes
 #: ids (growth takes over beyond: a press bulges the pattern by up to ~15 % of its radius).
 SEED_RADIUS = 3.5

@@ -20,9 +20,6 @@ SEED_HIT = 0.3
 #: ... and a raster larger than this many cells (a blob set spread far beyond any pattern) is not
 #: scored at all.
 SEED_RASTER_MAX_CELLS = 4_000_000
-#: Placements returned by default, best first (several, as a lattice placed one pitch off fits the
-#: interior as well as the truth).
-SEED_BEST = 8
 #: The first ring about a candidate centre of a circular pattern: blobs between these distances
 #: (separations) from it.
 SEED_RING1_INNER = 0.7
@@ -33,7 +30,7 @@ SEED_RING1_OUTER = 1.3
 SEED_SPREAD_RADIUS = 0.5
 
 
-def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n_best: int = SEED_BEST,
+def register_seed(pts: np.ndarray, lat: Lattice, *, max_hypotheses: int = 800, n_best: int = 8,
                   spread: bool = False) -> list:
     """A proposal independent of ring peeling: the similarity transform (scale from the median
     nearest-neighbour distance, rotation within the unambiguous range from the directions to the
