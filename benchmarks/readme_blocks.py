@@ -10,11 +10,10 @@ and :data:`BLOCKS` names what each block is made of: the gate figures of a quick
 metric ``benchmarks/thresholds.toml`` guards), the quick run's experiments (``quick-experiments``, one row per
 experiment: the paper's figures and claims beside the run's) and a full run's (``full-suite``, the same with each
 experiment's wall time), the twin's speed and fidelity table
-(``twin-speed``, from a ``bench twin`` record), the Pipeline and renderer tables (``pipeline-accuracy`` and ``renderer-accuracy``, from a ``bench accuracy``
-record and, for the Pipeline table's latency row, a ``bench latency`` record beside it), the certainty rule's headline
-(``identification-summary``, from a ``bench identification`` record), the identification
-coverage table (``identification-coverage``,
-from a ``bench identification`` record), the tracking table (``tracking-identity``, from a ``bench tracking``
+(``twin-speed``, from a ``bench twin`` record), the Pipeline and renderer tables (``pipeline-accuracy`` and
+``renderer-accuracy``, from a ``bench accuracy`` record and, for the Pipeline table's latency row, a ``bench latency``
+record beside it), the certainty rule's headline (``identification-summary``) and the identification coverage table
+(``identification-coverage``), both from a ``bench identification`` record, the tracking table (``tracking-identity``, from a ``bench tracking``
 record), the contact-mechanics checks (``physics-checks``, from a ``bench physics`` record), the TacTip twin
 against labelled real frames (``tactip-validation``, from the ``summary.json`` that ``stereotactip validate``
 writes), an oracle and an estimated quick run side by side (``oracle-vs-estimated``, ``report DIR --against DIR2``) and each error source

@@ -27,7 +27,7 @@ def _metric(rec: Mapping[str, Any], name: str) -> float | None:
 def _need(records: Records, name: str, block: str, source: str) -> Mapping[str, Any]:
     if name not in records:
         raise ResultsError(f"{source}: no {name!r} record: the {block} block is written from a directory holding "
-                           f"`stereotactip bench accuracy` and `bench latency` records")
+                           f"a `stereotactip bench {name}` record")
     return records[name]
 
 

@@ -17,8 +17,8 @@ from pipeline.design import load_design
 from pipeline.types import StereoFrame
 from twin import render as R
 from twin.optics import project_exact
-from twin.render.reference import (blob_centroids as _blob_centroids, displaced_markers, grey as _grey,
-                                   nearest_offsets as _match_errors, trace_comparison)
+from twin.render.reference import (displaced_markers, nearest_offsets as _match_errors,
+                                   rendered_centre_errors, trace_comparison, trace_picks)
 
 pytestmark = pytest.mark.render
 
@@ -46,10 +46,6 @@ def clean_renderer():
 
 def _displaced_markers(rng):
     return displaced_markers(DESIGN, rng)
-
-
-def _inside(uv, margin=12):
-    return (uv[:, 0] > margin) & (uv[:, 0] < W - 1 - margin) & (uv[:, 1] > margin) & (uv[:, 1] < H - 1 - margin)
 
 
 # ----- calibration export -------------------------------------------------------------------
@@ -82,23 +78,17 @@ def test_rendered_markers_land_on_exact_projections():
     for name, (P, A) in sets.items():
         frame = r.render_markers(P, A)
         assert isinstance(frame, StereoFrame) and frame.image.shape == (H, 2 * W, 3)
-        for side, img in (("left", frame.left), ("right", frame.right)):
-            truth = project_exact(P, thin, side)
-            ok = _inside(truth)
-            assert ok.sum() > 110
-            found = _blob_centroids(img)
-            assert abs(len(found) - ok.sum()) <= 3, (name, side, len(found), ok.sum())
-            err = np.linalg.norm(_match_errors(found, truth[ok]), axis=1)
-            assert err.max() < CENTROID_TOL_PX, (name, side, err.max())
+        for side, view in rendered_centre_errors(frame, thin, P).items():
+            assert view["expected"] > 110
+            assert abs(view["found"] - view["expected"]) <= 3, (name, side, view["found"], view["expected"])
+            assert view["errors_px"].max() < CENTROID_TOL_PX, (name, side, view["errors_px"].max())
 
 
 def test_thick_markers_wall_bias_is_bounded(clean_renderer):
     P, A = _displaced_markers(np.random.default_rng(2))
     frame = clean_renderer.render_markers(P, A)
-    for side, img in (("left", frame.left), ("right", frame.right)):
-        truth = project_exact(P, DESIGN, side)
-        ok = _inside(truth)
-        err = np.linalg.norm(_match_errors(_blob_centroids(img), truth[ok]), axis=1)
+    for view in rendered_centre_errors(frame, DESIGN, P).values():
+        err = view["errors_px"]
         assert err.max() < THICK_CENTROID_TOL_PX
         assert np.median(err) > 0.05       # the wall IS visible: a real, physical bias the pipeline sees
 
@@ -119,8 +109,7 @@ def test_per_vertex_refraction_matches_ray_traced_reference(clean_renderer):
     """Per-vertex refraction against the per-pixel ray tracer of ``twin.render.reference`` on a centre,
     a middle-ring and two outer markers, in each view where their window lies inside the image."""
     P, A = _displaced_markers(np.random.default_rng(4))
-    layers = DESIGN.marker_layers()
-    picks = [int(np.argmax(layers == 0)), int(np.argmax(layers == 3)), 0, int(np.argmax(layers == 6)) + 9]
+    picks = trace_picks(DESIGN)
     rows = trace_comparison(clean_renderer, DESIGN, P, A, picks)
     for row in rows:
         assert row["centroid_offset_px"] < TRACE_CENTROID_TOL_PX, row
@@ -170,11 +159,8 @@ def test_marker_board_through_stack_lands_on_refracted_projections(clean_rendere
     frame = clean_renderer.render_board("marker_board", T, through_stack=True)
     xy = DESIGN.rest_markers_mm()[:, :2]
     X = np.column_stack([xy, np.zeros(len(xy))]) @ T[:3, :3].T + T[:3, 3]
-    for side, img in (("left", frame.left), ("right", frame.right)):
-        truth = project_exact(X, DESIGN, side)
-        ok = _inside(truth)
-        err = np.linalg.norm(_match_errors(_blob_centroids(img), truth[ok]), axis=1)
-        assert err.max() < CENTROID_TOL_PX
+    for view in rendered_centre_errors(frame, DESIGN, X).values():
+        assert view["errors_px"].max() < CENTROID_TOL_PX
     # without refraction the same dots would be far off: the test can tell
     naive = project_exact(X, DESIGN, "left", through_stack=False)
     assert np.median(np.linalg.norm(naive - project_exact(X, DESIGN, "left"), axis=1)) > 3.0

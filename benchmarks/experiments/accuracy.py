@@ -164,7 +164,7 @@ def refraction_rows(design) -> list[dict]:
 
 def renderer_rows(ctx: Context, design) -> tuple[list[dict], list[dict]]:
     from twin import render as R
-    from twin.render.reference import displaced_markers, rendered_centre_errors, trace_comparison
+    from twin.render.reference import displaced_markers, rendered_centre_errors, trace_comparison, trace_picks
 
     thin = design.with_overrides({"markers.thickness_mm": 0.02})
     renderer = R.StereoRenderer(thin, rng=ctx.rng("render"), noise=False)
@@ -173,18 +173,13 @@ def renderer_rows(ctx: Context, design) -> tuple[list[dict], list[dict]]:
             "displaced": displaced_markers(thin, ctx.rng("render-displaced"))}
     centres = []
     for name, (P, A) in sets.items():
-        for side, r in rendered_centre_errors(renderer, thin, P, A).items():
+        for side, r in rendered_centre_errors(renderer.render_markers(P, A), thin, P).items():
             e = r["errors_px"]
             centres.append({"markers": name, "side": side, "found": r["found"], "expected": r["expected"],
                             "rms_px": float(np.sqrt(np.mean(e ** 2))), "max_px": float(e.max())})
     full = R.StereoRenderer(design, rng=ctx.rng("render"), noise=False)
     P, A = displaced_markers(design, ctx.rng("render-traced"))
-    layers = design.marker_layers()
-    outer = design.pattern.layers - 1
-    # the centre marker, one half-way out, the first marker and one on the outer ring (the most oblique view)
-    picks = [int(np.argmax(layers == 0)), int(np.argmax(layers == outer // 2)), 0,
-             min(int(np.argmax(layers == outer)) + 9, len(P) - 1)]
-    return centres, trace_comparison(full, design, P, A, picks)
+    return centres, trace_comparison(full, design, P, A, trace_picks(design))
 
 
 def real_frame_rows(folder: Path) -> list[dict]:

@@ -26,7 +26,7 @@ from twin.render.photometry import BLUR_SIGMA_PX, MARKER_BGR, MARKER_SIDE_BGR, P
 from twin.render.scene import marker_rotations
 
 __all__ = ["grey", "blob_centroids", "nearest_offsets", "trace_albedo", "bright_moments", "traced_window",
-           "rendered_centre_errors", "trace_comparison", "displaced_markers"]
+           "rendered_centre_errors", "trace_picks", "trace_comparison", "displaced_markers"]
 
 #: Blob area range of one marker image (px): markers are ~250 px at the design's 2.54 mm separation; the
 #: mount ring and the LED glare are far larger, sensor noise specks far smaller.
@@ -81,10 +81,11 @@ def _inside(uv: np.ndarray, width: int, height: int, margin: float = 12) -> np.n
     return (uv[:, 0] > margin) & (uv[:, 0] < width - 1 - margin) & (uv[:, 1] > margin) & (uv[:, 1] < height - 1 - margin)
 
 
-def rendered_centre_errors(renderer, design: SensorDesign, P: np.ndarray, A: np.ndarray) -> dict[str, dict]:
-    """Render markers ``P`` (axes ``A``) and compare, per view, the blob centroids with the exact projection of
-    the centres of the markers wholly inside the view: {side: {"errors_px", "found", "expected"}}."""
-    frame = renderer.render_markers(P, A)
+def rendered_centre_errors(frame, design: SensorDesign, P: np.ndarray) -> dict[str, dict]:
+    """Compare, per view of a rendered stereo ``frame``, the blob centroids with the exact projection of the
+    bright dots' centres ``P`` (mm; markers, or a board's printed dots) that lie inside the view:
+    {side: {"errors_px": per dot inside, the distance to the nearest centroid; "found": centroids;
+    "expected": dots inside}}."""
     w, h = design.cameras.width_px, design.cameras.height_px
     out = {}
     for side, img in (("left", frame.left), ("right", frame.right)):
@@ -172,6 +173,15 @@ def traced_window(renderer, design: SensorDesign, side: str, x0: int, y0: int, s
     syn = (255.0 * alb * shade[y0:y0 + size, x0:x0 + size, None]).astype(np.float32)
     syn = cv2.GaussianBlur(syn, (0, 0), BLUR_SIGMA_PX)
     return np.clip(syn + 0.5, 0, 255).astype(np.uint8)
+
+
+def trace_picks(design: SensorDesign) -> list[int]:
+    """The markers whose windows :func:`trace_comparison` checks: the centre marker, one half-way out, the
+    first marker and one on the outer ring (the most oblique view)."""
+    layers = design.marker_layers()
+    outer = design.pattern.layers - 1
+    return [int(np.argmax(layers == 0)), int(np.argmax(layers == outer // 2)), 0,
+            min(int(np.argmax(layers == outer)) + 9, len(layers) - 1)]
 
 
 def trace_comparison(renderer, design: SensorDesign, P: np.ndarray, A: np.ndarray,
