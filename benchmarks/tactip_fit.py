@@ -18,9 +18,15 @@ Stages (run in order and cached by ``stereotactip fit-twin``, :mod:`benchmarks.t
    pin rotation again), scored on the markers' displacement from the reference tap; then the height of the
    tap's tilt pivot (``twin.tilt_pivot_mm``, a coarse grid from the dome's centre to beyond its apex refined
    by one parabolic step, the depth offset re-searched for each in a bracket around its extrapolated value,
-   scored on every training tap), bending (within a factor 2) and pin rotation once more.
-4. **camera again** — the camera refitted on all training taps with the fitted skin (the uncertainties
-   printed are from this fit's Jacobian, sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals).
+   scored on every training tap), bending (within a factor 2) and pin rotation once more; then the tilt
+   frame again (within 30 degrees of its first fit, on the displacements of the 10 most tilted training
+   taps, where the first fit's pivot at the dome's centre and nominal skin had turned it 20 degrees on the
+   real taps), the depth offset after it and the pin rotation.
+4. **camera again** — the reference's ids taken again from the fitted twin's projected pin tips (stage 1's,
+   taken with the nominal skin and tilt, gave 8 outer-ring markers a neighbour's id on the real taps), the
+   camera refitted on all training taps with the fitted skin, and the ids taken once more with the fitted
+   camera (the camera refitted if they changed). The uncertainties printed are from this fit's Jacobian,
+   sigma^2 (J^T J)^-1 with the soft-L1 scaled residuals.
 5. **appearance** — background and marker grey, radial marker shading, marker size and pixel noise from
    the real frames' image statistics (the same detector and :func:`pipeline.vision.tactip_id.frame_stats` on twin
    renders, three fixed-point passes).
@@ -179,6 +185,17 @@ class FitContext:
         self.ref_xy = ref_xy
         self.real_xy = identify_chain(self.blobs, [f.pose for f in self.frames], self.ref, ref_xy)
 
+    def reference_from_twin(self, design: SensorDesign, twin: dict) -> np.ndarray:
+        """The real reference tap's markers (M, 2, NaN where unmatched) identified by the twin's projected pin
+        tips of the same tap (``design``'s camera, ``twin``'s skin and tap): each id goes to the real blob that
+        is mutually nearest within half a spacing (:func:`pipeline.vision.tactip_id.identify_by_reference`)."""
+        uv = project_markers(design, self.tap(self.ref, twin)[0])
+        real = self.blobs[self.ref].xy_px
+        idx = identify_by_reference(real, uv)
+        ref_xy = np.full_like(uv, np.nan)
+        ref_xy[idx >= 0] = real[idx[idx >= 0]]
+        return ref_xy
+
     def residuals(self, design: SensorDesign, idx, twin: dict) -> np.ndarray:
         out = []
         for i in idx:
@@ -318,7 +335,28 @@ def fit_layout(ctx: FitContext, twin: dict, bar=None) -> tuple[float, list]:
 
 
 def fit_camera_all(ctx: FitContext, design: SensorDesign, twin: dict) -> tuple[SensorDesign, dict]:
-    """Stage 4: the camera on all training taps with the fitted skin; uncertainty from the Jacobian."""
+    """Stage 4: the camera on all training taps with the fitted skin; uncertainty from the Jacobian.
+
+    The reference's ids (which identify every real frame) are first taken again from the twin's projected pin
+    tips with the fitted skin and tap: stage 1 took them with the nominal ones, whose reference tap lies
+    elsewhere on the outer rings (on the 40 real taps 8 of its 306 ids, all on the outermost ring, were a
+    neighbour's, and the fitted twin matches 328). After the fit they are taken once more with the fitted
+    camera, and the camera fitted again if they changed. Sets the context's reference; the report carries
+    the ids' counts."""
+    n_first = int(np.isfinite(ctx.ref_xy[:, 0]).sum()) if ctx.ref_xy is not None else 0
+    ctx.set_reference(ctx.reference_from_twin(design, twin))
+    fitted, rep = _fit_camera_all_once(ctx, design, twin)
+    again = ctx.reference_from_twin(fitted, twin)
+    refits = 0
+    if not np.array_equal(again, ctx.ref_xy, equal_nan=True):
+        ctx.set_reference(again)
+        fitted, rep = _fit_camera_all_once(ctx, fitted, twin)
+        refits = 1
+    rep["reference_ids"] = {"first": n_first, "fitted": int(np.isfinite(ctx.ref_xy[:, 0]).sum()), "refits": refits}
+    return fitted, rep
+
+
+def _fit_camera_all_once(ctx: FitContext, design: SensorDesign, twin: dict) -> tuple[SensorDesign, dict]:
     pts, obs = [], []
     for i in ctx.train:
         p, _ = ctx.tap(i, twin)

@@ -22,13 +22,16 @@ from pipeline.io.atomic import atomic_write_json, atomic_write_text
 from twin.tactip import check_monocular
 from benchmarks.tapdata import digest
 
-__all__ = ["fit_twin", "register", "cmd_fit", "PHYSICS_STAGE"]
+__all__ = ["fit_twin", "register", "cmd_fit", "PHYSICS_STAGE", "CAMERA_ALL_STAGE"]
 
 #: what the physics stage fits and scores (part of its cache key: a cached result of another version is
 #: recomputed, not reused)
 PHYSICS_STAGE = ("tilt frame on positions; pin rotation, bending, depth offset, tilt pivot (coarse grid to 36 mm, "
-                 "parabolic refine) on displacements")
+                 "parabolic refine) on displacements; tilt frame re-searched on the most tilted taps' displacements, "
+                 "depth offset after it")
 
+#: what the all-taps camera stage does (part of its cache key)
+CAMERA_ALL_STAGE = "reference ids re-taken from the fitted twin before (and after) the camera fit on every training tap"
 
 
 def _cached(cache: Path, name: str, key: str, fn):
@@ -149,10 +152,14 @@ def _camera_all_stage(st: _Stages, ctx: FitContext, d1, twin: dict, s1: dict) ->
     """Stage 4: the camera refitted on every training tap with the fitted physics."""
     def fit():
         d, rep = fit_camera_all(ctx, d1, twin)
-        return {"cam": rep["values"], "report": rep}
+        return {"cam": rep["values"], "report": rep, "ref_xy": ctx.ref_xy.tolist()}
 
-    s4, _ = _cached(st.cache, "4_camera_all", digest(st.base_key, s1["cam"], twin), fit)
+    s4, hit = _cached(st.cache, "4_camera_all", digest(st.base_key, s1["cam"], twin, CAMERA_ALL_STAGE), fit)
     st.bar.update(1)
+    ctx.set_reference(np.asarray(s4["ref_xy"], dtype=np.float64))
+    ids = s4["report"]["reference_ids"]
+    st.log(f"  reference ids re-taken with the fitted skin and tap{' (cached)' if hit else ''}: {ids['fitted']} "
+           f"markers (stage 1: {ids['first']}){', camera fitted again after them' if ids['refits'] else ''}")
     return s4
 
 
@@ -193,6 +200,11 @@ def _log_summary(log, summary: dict, c: dict, twin: dict, phys: dict, out: Path)
     log(f"  depth_offset_mm {twin['depth_offset_mm']:.3f} ± {phys['sd']['depth_offset_mm']:.3f}")
     log(f"  tilt_frame_deg  {twin['tilt_frame_deg']:.1f} ± {phys['sd']['tilt_frame_deg']:.1f}, "
         f"second tilt {'mirrored' if twin['tilt_mirror'] else 'as labelled'}")
+    if "tilt_frame_refit" in phys:
+        rf = phys["tilt_frame_refit"]
+        log(f"                  (first fit {phys['tilt_frame_first_deg']:.1f}; re-searched with the fitted skin and "
+            f"pivot on the {len(rf['frame_names'])} most tilted taps: displacement RMS {rf['rms_px_before']:.3f} -> "
+            f"{rf['rms_px']:.3f} px)")
     log(f"  pin_rotation    {twin['pin_rotation']:.3f} ± {phys['sd']['pin_rotation']:.3f} "
         f"(pins {summary['pin_height_mm']:.2f} mm, the design's) "
         f"(displacement RMS on the search taps {phys['displacement_rms_px_search']:.2f} px)")

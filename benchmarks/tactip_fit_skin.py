@@ -1,8 +1,9 @@
 """Stages 2 and 3 of fitting a TacTip twin (:mod:`benchmarks.tactip_fit`): the robot's tilt frame, scored on
 the projected pin tips against the identified real markers, then the pins' rotation fraction, the membrane's
 bending ratio, the labels' depth offset and the height of the tap's tilt pivot, each by a bounded 1-D search
-scored on the markers' displacements from the reference tap, with 1-sigma uncertainties from the objective's
-curvature.
+scored on the markers' displacements from the reference tap; then the tilt frame once more, on the displacements
+of the most tilted training taps with the fitted skin and pivot, and the depth offset after it; 1-sigma
+uncertainties from the objective's curvature.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from pipeline.design import SensorDesign
 if TYPE_CHECKING:
     from benchmarks.tactip_fit import FitContext
 
-__all__ = ["fit_physics", "PIN_ROTATION_RANGE", "TILT_PIVOTS_MM", "PIVOT_OFFSET_SLOPE", "PIVOT_OFFSET_BRACKET_MM",
-           "SEARCH_FRAMES", "TILT_FRAME_GRID", "PHYSICS_STEPS"]
+__all__ = ["fit_physics", "TILT_REFIT_FRAMES", "TILT_REFIT_HALF_DEG", "PIN_ROTATION_RANGE", "TILT_PIVOTS_MM",
+           "PIVOT_OFFSET_SLOPE", "PIVOT_OFFSET_BRACKET_MM", "SEARCH_FRAMES", "TILT_FRAME_GRID", "PHYSICS_STEPS"]
 
 #: coarse heights (mm) of the tap's tilt pivot above the dome's centre of curvature: from the centre (a tilted
 #: surface first touches at depth 0) past the apex of the 20 mm dome; one parabolic step refines the best
@@ -30,11 +31,18 @@ TILT_PIVOTS_MM = (0.0, 12.0, 24.0, 36.0)
 PIVOT_OFFSET_SLOPE = 0.022
 PIVOT_OFFSET_BRACKET_MM = 0.2
 SEARCH_FRAMES = 10      # training taps used by the 1-D physics searches (spread over depth and tilt)
+#: the most tilted training taps on which the tilt frame is re-searched, and the half-width (degrees) of that
+#: search about the first fit. The first fit is made on positions with the pivot at the dome's centre and the
+#: nominal skin: on the 40 real taps it ended at -160 deg, where the training displacements, with the fitted skin,
+#: pivot and camera held, are best at -178 to -184 deg (1.07-1.08 px against 1.83 px at -160; measured 2026-11-27)
+TILT_REFIT_FRAMES = 10
+TILT_REFIT_HALF_DEG = 30.0
 #: the tilt frame's coarse grid: both handedness of the second tilt, angles about the sensor axis (degrees)
 TILT_FRAME_GRID = [(mirror, psi) for mirror in (0.0, 1.0) for psi in np.arange(-180.0, 180.0, 30.0)]
 #: progress steps :func:`fit_physics` reports: the tilt-frame grid; the tilt frame's refinement, the bending ratio,
-#: the depth offset, the bending re-search and the uncertainties; each pivot height and the parabolic step
-PHYSICS_STEPS = len(TILT_FRAME_GRID) + 5 + len(TILT_PIVOTS_MM) + 1
+#: the depth offset, the bending re-search and the uncertainties; each pivot height and the parabolic step; the
+#: tilt frame's re-search with the depth offset after it
+PHYSICS_STEPS = len(TILT_FRAME_GRID) + 5 + len(TILT_PIVOTS_MM) + 1 + 1
 
 #: the pin rotation fraction is searched over its physical range: 0, pins that keep their rest direction
 #: while the skin turns under them; 1, pins held normal to the skin
@@ -98,6 +106,11 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     twin["bending_ratio"] = float(10 ** r.x)
     twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
     bar.update(1)
+    first_tilt_frame = twin["tilt_frame_deg"]
+    tilt_refit = _refit_tilt_frame(ctx, design, search, twin)
+    twin["pin_rotation"] = _fit_pin_rotation(ctx, design, search, twin)
+    bar.update(1)
+    f_psi = lambda v: ctx.displacement_rms(design, tilt_refit["frames"], {**twin, "tilt_frame_deg": v})  # noqa: E731
     f_a = lambda a: ctx.displacement_rms(design, search, {**twin, "pin_rotation": a})  # noqa: E731
     f_b = lambda lv: ctx.displacement_rms(design, search, {**twin, "bending_ratio": 10 ** lv})  # noqa: E731
     f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
@@ -109,13 +122,44 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
     a0 = min(max(twin["pin_rotation"], PIN_ROTATION_RANGE[0] + h_a), PIN_ROTATION_RANGE[1] - h_a)
     sd = {"log10_bending_ratio": _curvature_sd(f_b, math.log10(twin["bending_ratio"]), 0.15, f0, n_obs),
           "depth_offset_mm": _curvature_sd(f_d, twin["depth_offset_mm"], 0.1, f0, n_obs),
-          "tilt_frame_deg": _curvature_sd(f_psi, twin["tilt_frame_deg"], 3.0, p0, n_obs),
+          "tilt_frame_deg": _curvature_sd(f_psi, twin["tilt_frame_deg"], 3.0, tilt_refit["rms_px"],
+                                          tilt_refit["n_obs"]),
           "pin_rotation": _curvature_sd(f_a, a0, h_a, f_a(a0), n_obs)}
     bar.update(1)
     return twin, {"grid": [[float(a), float(b), float(c)] for a, b, c in grid], "rms_px_search": p0,
                   "displacement_rms_px_search": f0, "sd": sd, "pin_rotation": twin["pin_rotation"],
                   "tilt_pivot_scores": pivot_scores,
+                  "tilt_frame_first_deg": first_tilt_frame, "tilt_frame_refit": {k: v for k, v in tilt_refit.items()
+                                                                               if k != "frames"},
                   "search_frames": [ctx.frames[i].path.name for i in search]}
+
+
+def _refit_tilt_frame(ctx: FitContext, design: SensorDesign, search, twin: dict) -> dict:
+    """The tilt frame re-searched within :data:`TILT_REFIT_HALF_DEG` of its first fit, on the displacements of
+    the :data:`TILT_REFIT_FRAMES` most tilted training taps (where the tilt's direction shows) with the skin
+    and pivot already fitted; then the depth offset within :data:`PIVOT_OFFSET_BRACKET_MM` of its value on the search taps (a turned
+    tilt changes how deep the tilted taps press). Updates ``twin``; returns the taps, the scores before and
+    after and the number of observations."""
+    tilted = sorted((i for i in ctx.train if i != ctx.ref),
+                    key=lambda i: -np.hypot(ctx.frames[i].pose.tilt_x_deg, ctx.frames[i].pose.tilt_y_deg))
+    tilted = tilted[:TILT_REFIT_FRAMES]
+    psi0 = float(twin["tilt_frame_deg"])
+    f = lambda v: ctx.displacement_rms(design, tilted, {**twin, "tilt_frame_deg": v})  # noqa: E731
+    before = f(psi0)
+    r = minimize_scalar(f, bounds=(psi0 - TILT_REFIT_HALF_DEG, psi0 + TILT_REFIT_HALF_DEG), method="bounded",
+                        options={"xatol": 1.0, "maxiter": 14})
+    if float(r.fun) < before:
+        twin["tilt_frame_deg"] = float((r.x + 180) % 360 - 180)
+    off0 = float(twin["depth_offset_mm"])
+    f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
+    r_d = minimize_scalar(f_d, bounds=(off0 - PIVOT_OFFSET_BRACKET_MM, off0 + PIVOT_OFFSET_BRACKET_MM), method="bounded",
+                          options={"xatol": 0.02, "maxiter": 10})
+    if float(r_d.fun) < f_d(off0):
+        twin["depth_offset_mm"] = float(r_d.x)
+    after = f(twin["tilt_frame_deg"])
+    n_obs = sum(int(np.all(np.isfinite(ctx.real_xy[i]), axis=1).sum()) for i in tilted)
+    return {"frames": tilted, "frame_names": [ctx.frames[i].path.name for i in tilted], "rms_px_before": before,
+            "rms_px": after, "n_obs": n_obs}
 
 
 def _fit_pin_rotation(ctx: FitContext, design: SensorDesign, search, twin: dict) -> float:

@@ -157,13 +157,9 @@ def validate(frames, targets, design_name, out: Path, *, progress: bool = True, 
 def _real_reference(ctx: FitContext, design, tw: dict) -> tuple[np.ndarray, np.ndarray]:
     """Ids of the real reference frame: its markers nearest the twin's projected pin tips. Sets them as the
     context's reference (which identifies every real frame) and returns (projected tips, real reference)."""
-    p_ref, _ = ctx.tap(ctx.ref, tw)
-    uv_ref = project_markers(design, p_ref)
-    idx = identify_by_reference(ctx.blobs[ctx.ref].xy_px, uv_ref)
-    ref_real = np.full_like(uv_ref, np.nan)
-    ref_real[idx >= 0] = ctx.blobs[ctx.ref].xy_px[idx[idx >= 0]]
+    ref_real = ctx.reference_from_twin(design, tw)
     ctx.set_reference(ref_real)
-    return uv_ref, ref_real
+    return project_markers(design, ctx.tap(ctx.ref, tw)[0]), ref_real
 
 
 class _TwinFrames(NamedTuple):

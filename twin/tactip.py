@@ -43,13 +43,13 @@ offset, and the over-pressed reference tap mis-set the pin spacing and the refer
 height is now a fitted ``[twin]`` value (``tilt_pivot_mm``) that only the skin stage moves: the stages
 before it tap with the pivot at the dome's centre, as before.
 
-On the real taps the outer rings' missing motion is a matter of tilt, not of the skin: per training tap
-the real / twin displacement gain of rings 8-10 correlates with the tilt (r = 0.75; 0.9-1.1 on the
-near-axial deep taps, 1.3-2.1 on the taps tilted 15-19 degrees), and on the most tilted taps it is an
-outward radial excess over the whole outer band (1.3-3.9 px), not a sideways shift. A membrane
-pre-tension (edge rest lengths shortened by a pre-strain, the bending ratio and depth offset re-fitted)
-spread the motion outwards but raised the held-out displacement error at every pre-strain (2.19 px at 0,
-2.23 at 0.01, 2.39 at 0.03 with the fitted camera held); not kept.
+On the real taps the first fit of the robot's tilt frame (``tilt_frame_deg``, fitted on positions with the
+pivot at the dome's centre and the nominal skin) was 20 degrees off: the tilted taps' outer rings then seemed
+to lack 11-21 % of their motion, and a membrane pre-tension (edge rest lengths shortened by a pre-strain)
+tried against it raised the held-out displacement error at every pre-strain (2.19 px at 0, 2.23 at 0.01,
+2.39 at 0.03). Single tilted taps' poses fitted to the real markers showed the labelled tilt turned by
+18-22 degrees against the one the twin needed; ``stereotactip fit-twin`` now re-searches the tilt frame once
+the skin and pivot are fitted (179.4 degrees; held-out marker RMS 2.17 -> 1.24 px).
 
 Rendering: :mod:`twin.tactip_render` (the single camera's frame of the pin-tip markers).
 """
