@@ -117,6 +117,29 @@ def _kill_pool(pool: ProcessPoolExecutor, timeout_s: float = 5.0) -> None:
     if manager is not None:
         with contextlib.suppress(Exception):
             manager.join(max(1.0, deadline - time.monotonic()))
+    _lock_wakeup(pool)
+
+
+def _lock_wakeup(pool: ProcessPoolExecutor) -> None:
+    """Make the executor's wake-up pipe safe to poke at interpreter exit.
+
+    At exit ``concurrent.futures.process`` wakes every executor's manager thread through its wake-up pipe
+    without the executor's shutdown lock, while a manager thread still winding down after its workers were
+    killed closes that pipe under the lock: under load the write can meet the closed descriptor and the
+    interpreter prints "Exception ignored ... OSError: [Errno 9] Bad file descriptor" on the way out (seen
+    once in the interrupt test, 2026-11-27, Python 3.11). The check-and-write is put under the same lock
+    that guards the close, so it sees the pipe open or knows it closed."""
+    wake = getattr(pool, "_executor_manager_thread_wakeup", None)
+    lock = getattr(pool, "_shutdown_lock", None)
+    if wake is None or lock is None or not callable(getattr(wake, "wakeup", None)):
+        return
+    unlocked = wake.wakeup
+
+    def wakeup() -> None:
+        with lock:
+            unlocked()
+
+    wake.wakeup = wakeup
 
 
 def run_parallel(fn: Callable[..., Any], jobs: Sequence[tuple], *, workers: int,
