@@ -300,12 +300,10 @@ def fit_camera_reference(ctx: FitContext, twin: dict) -> tuple[SensorDesign, np.
         vec = vec.copy()
         vec[free] = res.x
     fitted = apply_params(design, dict(zip(CAM_KEYS, vec)))
-    uv = project_markers(fitted, p)
-    idx = identify_by_reference(real, uv)
-    ref_xy = np.full_like(uv, np.nan)
-    ref_xy[idx >= 0] = real[idx[idx >= 0]]
-    report = {"roll_grid_median_px": best[0], "matched": int((idx >= 0).sum()),
-              "rms_px": float(np.sqrt(np.mean(np.sum((uv[idx >= 0] - ref_xy[idx >= 0]) ** 2, axis=1))))}
+    ref_xy = ctx.reference_from_twin(fitted, twin)
+    ok = np.isfinite(ref_xy[:, 0])
+    report = {"roll_grid_median_px": best[0], "matched": int(ok.sum()),
+              "rms_px": float(np.sqrt(np.mean(np.sum((project_markers(fitted, p)[ok] - ref_xy[ok]) ** 2, axis=1))))}
     return fitted, ref_xy, report
 
 

@@ -137,9 +137,9 @@ def fit_physics(ctx: FitContext, design: SensorDesign, twin: dict, bar) -> tuple
 def _refit_tilt_frame(ctx: FitContext, design: SensorDesign, search, twin: dict) -> dict:
     """The tilt frame re-searched within :data:`TILT_REFIT_HALF_DEG` of its first fit, on the displacements of
     the :data:`TILT_REFIT_FRAMES` most tilted training taps (where the tilt's direction shows) with the skin
-    and pivot already fitted; then the depth offset within :data:`PIVOT_OFFSET_BRACKET_MM` of its value on the search taps (a turned
-    tilt changes how deep the tilted taps press). Updates ``twin``; returns the taps, the scores before and
-    after and the number of observations."""
+    and pivot already fitted; then the depth offset within :data:`PIVOT_OFFSET_BRACKET_MM` of its value on the
+    search taps (a turned tilt changes how deep the tilted taps press). Updates ``twin``; returns the taps,
+    the scores before and after and the number of observations."""
     tilted = sorted((i for i in ctx.train if i != ctx.ref),
                     key=lambda i: -np.hypot(ctx.frames[i].pose.tilt_x_deg, ctx.frames[i].pose.tilt_y_deg))
     tilted = tilted[:TILT_REFIT_FRAMES]
@@ -152,8 +152,8 @@ def _refit_tilt_frame(ctx: FitContext, design: SensorDesign, search, twin: dict)
         twin["tilt_frame_deg"] = float((r.x + 180) % 360 - 180)
     off0 = float(twin["depth_offset_mm"])
     f_d = lambda v: ctx.displacement_rms(design, search, {**twin, "depth_offset_mm": v})  # noqa: E731
-    r_d = minimize_scalar(f_d, bounds=(off0 - PIVOT_OFFSET_BRACKET_MM, off0 + PIVOT_OFFSET_BRACKET_MM), method="bounded",
-                          options={"xatol": 0.02, "maxiter": 10})
+    r_d = minimize_scalar(f_d, bounds=(off0 - PIVOT_OFFSET_BRACKET_MM, off0 + PIVOT_OFFSET_BRACKET_MM),
+                          method="bounded", options={"xatol": 0.02, "maxiter": 10})
     if float(r_d.fun) < f_d(off0):
         twin["depth_offset_mm"] = float(r_d.x)
     after = f(twin["tilt_frame_deg"])

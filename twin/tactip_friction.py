@@ -10,8 +10,9 @@ slip ``u`` relative to the plane over the step, projected on the plane, costs ``
 positive semi-definite Hessian enter the same projected-Newton solve. Against 0.125 mm steps the markers
 differ by at most 0.018 mm with 0.25 mm steps (0.054 mm with 0.5 mm).
 
-Measured on the real taps (2026-11-25, with the fit's first tilt frame of -160 degrees, since found 20 degrees off; not re-measured with the corrected one): Coulomb friction measured with the frictionless fit's camera and skin held (bending 0.106, depth offset
--0.639 mm, pin rotation 0.024, tilt pivot 17.5 mm) on the markers' displacements from the reference tap
+Measured on the real taps (2026-11-25, with the fit's first tilt frame of -160 degrees, since found 20 degrees
+off; not re-measured with the corrected one): Coulomb friction measured with the frictionless fit's camera and
+skin held (bending 0.106, depth offset -0.639 mm, pin rotation 0.024, tilt pivot 17.5 mm) on the markers' displacements from the reference tap
 (projected pin tips): training error 1.87 / 1.78 / 2.23 px at mu 0 / 0.1 / 0.3, held out 2.00 / 1.88 /
 2.25 px. End to end (rendered, detected, identified) at mu 0.1 the held-out marker RMS is 2.05 px against
 2.17 frictionless, the held-out displacement error 1.88 px against 1.98. A deeper depth offset does not
