@@ -1,4 +1,4 @@
-"""Latency benchmark of the pipeline: raw stereo frame -> reconstructed skin, per stage, on one core.
+"""Latency benchmark of the pipeline: raw stereo frame -> reconstructed skin, per stage.
 
 Frames are analytic (:mod:`pipeline.io.synthetic`): a Gaussian press whose depth sweeps 0-3 mm over
 the run, so every frame differs. The paper reports 283 ms per frame (MATLAB/Python, Ryzen 7 5800X);
@@ -23,6 +23,7 @@ import numpy as np
 from pipeline.design import load_design
 from pipeline.priority import frame_priority
 from pipeline.runner import Reconstructor
+from pipeline.threads import default_view_threads
 from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
 __all__ = ["run_latency", "reference_workload_ms", "PAPER_LATENCY_MS", "GOAL_MEDIAN_MS"]
@@ -77,7 +78,7 @@ def _busy_processes(n: int) -> list:
 
 
 def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generator, n_distinct_frames: int,
-                 progress: bool) -> dict:
+                 progress: bool, view_threads: int | None = None) -> dict:
     """One design's timing in :func:`run_latency`: ``n_frames`` synthetic press frames through a fresh
     runner, each preceded by the reference job, after one warm-up frame."""
     from tqdm import tqdm
@@ -86,7 +87,7 @@ def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generato
     depths = np.linspace(0.0, 3.0, n_distinct_frames)
     frames = [synth_stereo_frame(design, calib, gaussian_press_markers(design, float(d), sigma_mm=4.0),
                                  rng=rng, index=k) for k, d in enumerate(depths)]
-    rec = Reconstructor(design, calib, refraction=refraction)
+    rec = Reconstructor(design, calib, refraction=refraction, view_threads=view_threads)
     stages: dict[str, list[float]] = {}
     matched = []
     reference = []
@@ -110,7 +111,7 @@ def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generato
 def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome"), n_frames: int = 200,
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
                 n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0,
-                nice: int | None = None) -> dict:
+                nice: int | None = None, view_threads: int | None = None) -> dict:
     """Time the whole runner per stage on synthetic frames (the runner holds BLAS, OpenMP and
     OpenCV at one thread per frame: :mod:`pipeline.threads`).
 
@@ -124,6 +125,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
         background load; 0 = none)
     nice : the frames are processed at this niceness (:func:`pipeline.priority.frame_priority`; None: the
         process's own); the spinning processes keep theirs
+    view_threads : 1 or 2 (the runner's ``view_threads``; None: its default, 2 on two or more CPUs)
 
     Returns
     -------
@@ -136,6 +138,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     result: dict = {"paper_ms": PAPER_LATENCY_MS, "goal_median_ms": GOAL_MEDIAN_MS, "n_frames": n_frames,
                     "refraction": refraction, "seed": seed, "opencv_threads": 1,
                     "background_procs": int(background_procs),
+                    "view_threads": default_view_threads() if view_threads is None else int(view_threads),
                     "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                                 "cpu_count": os.cpu_count(), "opencv": cv2.__version__, "numpy": np.__version__},
                     "designs": {}}
@@ -145,7 +148,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
             result["niceness"] = niceness
             for name in design_names:
                 result["designs"][name] = _time_design(load_design(name), n_frames, refraction, rng,
-                                                       n_distinct_frames, progress)
+                                                       n_distinct_frames, progress, view_threads)
     finally:
         cv2.setNumThreads(threads)
         for proc in load:

@@ -65,7 +65,9 @@ def _latency_row(lat: Mapping[str, Any]) -> tuple[str, str, str, str]:
     load = f", {params['background_procs']} process(es) spinning beside it" if params.get("background_procs") else ""
     nice = f", frames at niceness {params['nice']}" if params.get("nice") is not None else ""
     frames = int(_metric(lat, "frames_per_design") or 0)
-    what = (f"latency, raw stereo frame → surface, one core ({frames} analytic frames a design{load}{nice}; "
+    views = _metric(lat, "view_threads")
+    where = "one thread" if views is None or int(views) == 1 else "the two views on two threads"
+    what = (f"latency, raw stereo frame → surface, {where} ({frames} analytic frames a design{load}{nice}; "
             "median per stage in ms)")
     got = (f"{'; '.join(parts)}; the fixed reference job ran {_fmt(_metric(lat, 'reference_ms_median'), 3)} ms "
            f"(the frame in its units: {_fmt(_metric(lat, 'total_over_reference'), 3)}, worst design)")

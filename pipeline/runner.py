@@ -16,7 +16,7 @@ from pipeline.design import SensorDesign
 from pipeline.errors import UserError
 from pipeline.geometry.refraction import RefractionError, correct_exact, correct_linear, project_through_stack
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
-from pipeline.threads import one_thread
+from pipeline.threads import VIEW_THREADS, ViewPolicy, both_views, default_view_threads, one_thread
 from pipeline.geometry.triangulation import matched_rays, triangulate
 from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
                             StereoFrame)
@@ -147,17 +147,26 @@ class Reconstructor:
         accuracy unchanged: tests/test_detection.py).
     with_height_map : bool
         Also resample the skin on a grid (``height_map_step_mm``) each frame.
+    view_threads : {1, 2}, optional
+        2: the right view is detected and identified on a worker thread while the calling thread does the
+        left (:func:`pipeline.threads.both_views`; identical results); 1: both on the calling thread.
+        Default: 2 where the process may use two or more CPUs.
     """
 
     def __init__(self, design: SensorDesign, calib: StereoCalibration, *, refraction: str = "exact",
                  n_gel: float | None = None, tracker: str = "dtrc", reference: StereoFrame | MarkerCloud | None = None,
-                 detection_params=None, with_height_map: bool = False, height_map_step_mm: float = 0.25) -> None:
+                 detection_params=None, with_height_map: bool = False, height_map_step_mm: float = 0.25,
+                 view_threads: int | None = None) -> None:
         if refraction not in REFRACTION_MODES:
             raise RunnerError(f"refraction mode {refraction!r}: choose one of {REFRACTION_MODES}")
         if tracker not in TRACKERS:
             raise RunnerError(f"tracker {tracker!r}: choose one of {TRACKERS}")
         if n_gel is not None and not 1.0 <= n_gel <= 3.0:
             raise RunnerError(f"n_gel {n_gel}: refractive index outside [1, 3]")
+        if view_threads is not None and view_threads not in VIEW_THREADS:
+            raise RunnerError(f"view threads {view_threads!r}: choose one of {VIEW_THREADS}")
+        self.view_threads = default_view_threads() if view_threads is None else int(view_threads)
+        self._views = ViewPolicy(self.view_threads)
         from pipeline.vision import detection, dtrc
 
         calib.check_fits_frame()
@@ -227,10 +236,25 @@ class Reconstructor:
                              np.union1d(matches.unmatched_ids, rejected))
         return kept, rejected, kept_cloud, tuple(r[good] for r in rays)
 
+    def _view(self, view: int, image: np.ndarray) -> tuple[Blobs, object, float, float]:
+        """Detect one view's markers and, with a tracker that codes views apart, identify them (reads only
+        earlier frames' state: the two views run at once, :func:`pipeline.threads.both_views`)."""
+        t0 = time.perf_counter()
+        blobs = self._detect(image, params=self._detection_params)
+        t1 = time.perf_counter()
+        coding = self._tracker.code_view(view, blobs) if hasattr(self._tracker, "code_view") else None
+        return blobs, coding, t1 - t0, time.perf_counter() - t1
+
     def _match(self, frame: StereoFrame) -> tuple[MarkerMatches, tuple[int, int], dict[str, float]]:
         t0 = time.perf_counter()
-        left = self._detect(frame.left, params=self._detection_params)
-        right = self._detect(frame.right, params=self._detection_params)
+        threads, waited = self._views.next(), []
+        (left, lc, ld, lm), (right, rc, rd, rm) = both_views(self._view, frame.left, frame.right,
+                                                             threads=threads, waited=waited)
+        t1 = time.perf_counter()
+        if waited:
+            self._views.record(ld + lm, waited[0])
+        matches = self._tracker.commit(left, right, (lc, rc)) if lc is not None else self._tracker.update(left, right)
+        t2 = time.perf_counter()
         if self._narrow and min(len(left), len(right)) >= self.design.marker_count // 2:
             from pipeline.vision.detection import marker_radius_px
 
@@ -238,10 +262,10 @@ class Reconstructor:
                          np.concatenate([left.response, right.response]))
             self._detection_params = self._detection_params.for_marker_radius(marker_radius_px(both))
             self._narrow = False
-        t1 = time.perf_counter()
-        matches = self._tracker.update(left, right)
-        t2 = time.perf_counter()
-        return matches, (len(left), len(right)), {"detect": 1e3 * (t1 - t0), "match": 1e3 * (t2 - t1)}
+        # "detect" and "match" are each view's work added up, wherever it ran; "views" is the wall time
+        # of both views' detection and identification (less than their sum when they overlap)
+        return matches, (len(left), len(right)), {"detect": 1e3 * (ld + rd), "match": 1e3 * (lm + rm + t2 - t1),
+                                                  "views": 1e3 * (t1 - t0)}
 
     def process(self, frame: StereoFrame) -> FrameResult:
         """Run all stages on one frame. A frame without enough markers gives an empty result (all ids

@@ -166,7 +166,8 @@ def _reconstruct(args: argparse.Namespace) -> int:
 
     design = load_design(args.design)
     calib = _load_calib(args.calib)
-    rec = Reconstructor(design, calib, refraction=args.refraction, n_gel=args.n_gel, tracker=args.tracker)
+    rec = Reconstructor(design, calib, refraction=args.refraction, n_gel=args.n_gel, tracker=args.tracker,
+                        view_threads=args.view_threads)
     with frame_priority(args.nice):
         summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
                               preview_every=args.preview_every)
@@ -209,6 +210,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tracker", choices=("dtrc", "nn"), default="dtrc")
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--preview-every", type=int, default=0, help="also write mesh + PNG every k-th frame")
+    p.add_argument("--view-threads", type=int, choices=(1, 2), default=None,
+                   help="2: the right view detected and identified on a worker thread beside the left (the "
+                        "default on two or more CPUs; the same result); 1: both on the frame's thread")
     p.add_argument("--nice", type=int, default=None, metavar="N",
                    help="process frames at niceness N (e.g. -10: a larger share of a loaded machine; below the "
                         "current niceness needs root or CAP_SYS_NICE)")

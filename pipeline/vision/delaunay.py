@@ -25,13 +25,13 @@ _ORIENT_MARGIN = 1e-10
 _INCIRCLE_MARGIN = 1e-9
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _orient(ax, ay, bx, by, cx, cy):
     """Twice the signed area of (a, b, c): > 0 counter-clockwise (x right, y up)."""
     return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _incircle(ax, ay, bx, by, cx, cy, px, py):
     """(det, permanent): det > 0 when p is inside the circumcircle of the counter-clockwise triangle
     (a, b, c); the permanent (the same terms in absolute value) bounds det's rounding error."""
@@ -47,7 +47,7 @@ def _incircle(ax, ay, bx, by, cx, cy, px, py):
     return det, perm
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _hash_key(x, y, cx, cy, size):
     """Hull hash bucket of a point: its pseudo-angle (monotone in the angle, no trigonometry) about c."""
     dx, dy = x - cx, y - cy
@@ -57,14 +57,14 @@ def _hash_key(x, y, cx, cy, size):
     return int(math.floor(a * size)) % size
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _link(half, a, b):
     half[a] = b
     if b != -1:
         half[b] = a
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _legalize(a, tri, half, pts, hull_tri, hull_prev, hull_start, stack):
     """Flip edges from halfedge ``a`` until they are locally Delaunay (Lawson). Returns the halfedge
     that ends on the hull from the new point (Delaunator's bookkeeping)."""
@@ -113,7 +113,7 @@ def _legalize(a, tri, half, pts, hull_tri, hull_prev, hull_start, stack):
     return ar
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _certify(pts, tri, half, hull_start, hull_next, hull_n):
     """True when the triangles (``tri``, 3 per triangle, ``half``: opposite halfedges) are certainly
     THE Delaunay triangulation of all ``pts``: all points used, Euler count, strictly CCW triangles,
@@ -162,7 +162,7 @@ def _certify(pts, tri, half, hull_start, hull_next, hull_n):
     return e == hull_start
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def delaunay_certified(pts):
     """Sweep-hull Delaunay triangulation of (N, 2) points: (simplices (M, 3), neighbours (M, 3) in
     scipy's convention (``neighbors[t, k]`` opposite vertex k, -1 on the hull), certified). Only a

@@ -81,7 +81,7 @@ def _keep(out_idx, out_d2, n, k, i, d):
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nearest(pts, x, y, k, out_idx, out_d2):
     """The ``k`` (``<= len(pts)``) points of ``pts`` nearest to ``(x, y)``, in (squared distance, index)
     order, into ``out_idx`` / ``out_d2`` (squared distances). Brute force: one pass keeping a sorted
@@ -94,7 +94,7 @@ def nearest(pts, x, y, k, out_idx, out_d2):
         n = _keep(out_idx, out_d2, n, k, i, dx * dx + dy * dy)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def y_order(pts, by_y, ys):
     """Fill ``by_y`` with the point indices in ascending ``y`` and ``ys`` with those ``y`` (for
     :func:`nearest_swept`); returns False, leaving the sweep unusable, when a coordinate is not finite."""
@@ -107,7 +107,7 @@ def y_order(pts, by_y, ys):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nearest_swept(pts, by_y, ys, x, y, k, out_idx, out_d2):
     """:func:`nearest`, the same points in the same order, visiting only the points whose ``y`` is
     within the k-th distance: out from ``y`` through ``ys`` (:func:`y_order`) in both directions,
@@ -138,7 +138,7 @@ def _sweep(pts, by_y, start, stop, step, x, y, k, out_idx, out_d2, n):
     return n
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nearest_members(xy, order, member, s, k, skip_self, out):
     """The ``k`` design points with ``member`` True nearest to design point ``s`` (without ``s`` itself
     when ``skip_self``), in (squared distance, index) order, into ``out``; returns how many were found

@@ -23,7 +23,7 @@ LONG_EDGE_FACTOR = 2.3
 #: Prediction gate in local pitches: a blob must lie within this of its predicted slot (neighbours
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _median(a: np.ndarray) -> float:
     """Median of a 1-D array (np.median's result without its per-call overhead)."""
     s = np.sort(a)
@@ -63,7 +63,7 @@ def _triangulate(pts: np.ndarray, *, with_exact: bool = False):
     return out if with_exact else out[:2]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _nn_from_triangles(pts, simp):
     """Shortest incident edge of every point of a triangulation using all of them."""
     nn = np.full(len(pts), np.inf)
@@ -161,14 +161,14 @@ def mesh_edges(tris: np.ndarray, n: int) -> np.ndarray:
     return e[first].astype(np.int64)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _boundary_slot(t, k, alive, across):
     """Slot k of alive triangle t is an edge of no other alive triangle."""
     j = across[t, k]
     return j < 0 or not alive[j]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _is_bad(t, alive, across, sliver, long_):
     """:meth:`_Mesh.carve`'s removal rule for alive triangle t: on the boundary, and a sliver or with
     a long boundary edge."""
@@ -181,7 +181,7 @@ def _is_bad(t, alive, across, sliver, long_):
     return on_b and (sliver[t] or long_b)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _carve(alive, across, sliver, long_):
     """:meth:`_Mesh.carve` in place, with a work list instead of whole-mesh sweeps. Removing a
     triangle only adds boundary slots to the others, so "bad" only grows as triangles go: any removal

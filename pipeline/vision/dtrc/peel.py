@@ -13,7 +13,7 @@ from pipeline.vision.dtrc.mesh import (LONG_EDGE_FACTOR, OUTLIER_NN_FACTOR, SLIV
                                        _median, _nn_and_mesh, _triangulate)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _peel_kernel(pts, idx, simp, nb, med_edge, n_rings):
     """Compiled :func:`_peel` on the triangulation (``simp``, ``nb``) of ``pts[idx]``.
 

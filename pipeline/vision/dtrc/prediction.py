@@ -32,7 +32,7 @@ PREDICT_RIDGE = 1e-9
 # The 3x3 least squares are solved directly (Gaussian elimination, partial pivoting); they differ from
 # LAPACK by rounding only (~1e-15 relative), far below the gates' margins.
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _affine_fit(query_ids, ref_ids, ref_px, xy_d, order, k, exclude_self):
     """Predict image positions of design slots from local affine fits to coded neighbours.
 
@@ -99,7 +99,7 @@ def _affine_fit(query_ids, ref_ids, ref_px, xy_d, order, k, exclude_self):
     return pred, scale
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _verify_and_grow(pts, ids, active, xy_d, order, pitch_mm, max_rounds):
     """Uncode ids that disagree with their coded neighbours, then code free slots by prediction.
 
@@ -156,7 +156,7 @@ SHIFT_FIT = 0.45
 SHIFT_MARGIN = 2.0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _shift_by_prediction(members, d_ids, pts, ids, xy_d, order, pitch_mm):
     """Cyclic shift coding a complete ring (``members`` sorted CCW) whose gaps are irregular.
 

@@ -81,7 +81,7 @@ def _design_flat(design: SensorDesign):
 _TWO_PI = 2 * math.pi
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _wrap_scalar(a: float) -> float:
     """``(a + pi) % (2 pi) - pi`` bit for bit (numpy's floored modulo), without a modulo in the common
     case (|a + pi| < 2 pi, where the modulo is exact)."""
@@ -108,7 +108,7 @@ def _design_gap_scale(design_xy: np.ndarray) -> float:
     return float((gd / _median(gd)).mean())
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _gaps_regular(pts, members, gap_scale):
     """Consecutive gaps of a ring (``members`` in angular order, cyclic) agree with the design's, whose
     mean gap over median gap is ``gap_scale``."""
@@ -128,7 +128,7 @@ def _gaps_regular(pts, members, gap_scale):
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _ring_by_angle(pts, members):
     """Ring members sorted CCW by atan2 about their centroid, and those angles."""
     m = len(members)
@@ -146,7 +146,7 @@ def _ring_by_angle(pts, members):
     return members[o], phi[o]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _shift_code(phi, psi, theta):
     """Best cyclic shift aligning found angles ``phi`` (sorted CCW) to design ``psi`` (canonical order).
 
@@ -183,7 +183,7 @@ def _shift_code(phi, psi, theta):
     return best, theta + best_m, spread
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _code_by_angles(pts, ring_flat, ring_off, layer, theta, ids, d_ids, d_ang, d_off, d_gap):
     """Code layers ``layer, layer + 1, ...`` (peel ``n_layers - 1 - layer``) into ``ids`` while each
     ring has the design's size and regular gaps and its best shift fits (spread < half the ring's
@@ -215,7 +215,7 @@ def _code_by_angles(pts, ring_flat, ring_off, layer, theta, ids, d_ids, d_ang, d
     return layer, theta
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _unmatched(ids, n_markers):
     """Design ids (ascending) not among ``ids``."""
     present = np.zeros(n_markers, np.bool_)

@@ -24,7 +24,7 @@ REST_BELOW = 0.9
 
 # ----- stereo matching and tracking ---------------------------------------------------------
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pair_indices(left_ids, right_ids, n_markers):
     """Ids coded in both views (ascending), their blob index in each view, and the other ids."""
     li = np.full(n_markers, -1, np.int64)
@@ -170,26 +170,37 @@ class DTRCTracker:
         self._before: list | None = None
         self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
 
-    def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
-        prev = self._previous if self.temporal else None
-        hist = [None, None]
+    def code_view(self, view: int, blobs: Blobs) -> tuple[RingCoding, bool]:
+        """One view's coding (``view`` 0 = left, 1 = right) and whether it was read from the rest pattern.
+
+        Reads only what earlier frames left (the tracker's state is changed by :meth:`commit` alone), so
+        the two views of a frame may be coded at once on two threads
+        (:func:`pipeline.threads.both_views`)."""
+        prev = self._previous[view] if self.temporal and self._previous is not None else None
+        hist = None
         if prev is not None:
-            prev = [(xy, i, *before) for (xy, i), before in zip(prev, self._before)]
-            hist = [[frame[v] for frame in [self._before, *self._older]] for v in (0, 1)]
-        lc = code_rings(left, self.design, previous=None if prev is None else prev[0], history=hist[0])
-        rc = code_rings(right, self.design, previous=None if prev is None else prev[1], history=hist[1])
-        self.read_from_rest = False
+            prev = (*prev, *self._before[view])
+            hist = [frame[view] for frame in [self._before, *self._older]]
+        coding = code_rings(blobs, self.design, previous=prev, history=hist)
         if prev is None and self.rest is not None:
-            lc2 = read_from_rest(left, self.design, lc, self.rest[0])
-            rc2 = read_from_rest(right, self.design, rc, self.rest[1])
-            self.read_from_rest = lc2 is not lc or rc2 is not rc
-            lc, rc = lc2, rc2
+            again = read_from_rest(blobs, self.design, coding, self.rest[view])
+            return again, again is not coding
+        return coding, False
+
+    def commit(self, left: Blobs, right: Blobs, codings: tuple[tuple[RingCoding, bool], tuple[RingCoding, bool]]
+               ) -> MarkerMatches:
+        """Take the frame's two view codings (from :meth:`code_view`) as the latest and pair them."""
+        (lc, lrest), (rc, rrest) = codings
+        self.read_from_rest = lrest or rrest
         self.last_codings = (lc, rc)
         if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
             self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
         self._before = self._previous if self._previous is not None else [(np.empty((0, 2)), np.empty(0, np.int64))] * 2
         self._previous = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         return _pair(left, right, lc, rc, _marker_count(self.design))
+
+    def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
+        return self.commit(left, right, (self.code_view(0, left), self.code_view(1, right)))
 
     __call__ = update
 

@@ -19,7 +19,7 @@ from pipeline.vision.identity.neighbours import _adj
 from pipeline.vision.nearest import nearest
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _beyond_hits(pts, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gate):
     """Per lattice site beyond the outer ring whose outer-ring slot is identified: 1 when an
     unidentified blob lies within ``gate`` local pitches of the site's position predicted from that
@@ -54,7 +54,7 @@ def _beyond_hits(pts, slot_of, blob_of, xy, nbr2, pitch, v_slot, v_xy, gate):
     return hit
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _joined(s, j, blob_of, nbr):
     """Whether the design neighbours ``s`` and ``j`` share an identified design neighbour. A link
     without one is a bare edge across a gap: where a press crowds whole rows of pins out of the
@@ -77,7 +77,7 @@ def _joined(s, j, blob_of, nbr):
     return False
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _components(slot_of, blob_of, nbr, triangles=False):
     """Connected patches of identified blobs (design neighbours within 1.5 pitches both identified):
     patch index per blob, -1 for unidentified blobs. With ``triangles``, two neighbours are joined
@@ -111,7 +111,7 @@ def _components(slot_of, blob_of, nbr, triangles=False):
     return comp
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rotation_deg(pts_img, xy_des) -> float:
     """In-plane rotation (deg) of the Procrustes fit of image points onto design points."""
     m = len(pts_img)
@@ -150,7 +150,7 @@ def _centre_holds(pts, slot_of, members, lat) -> bool:
     return _centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre):
     """:func:`_centre_holds` (compiled)."""
     c0x = 0.0
@@ -254,7 +254,7 @@ def _anchored(pts, slot_of, members, lat) -> bool:
     return False
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _alternatives_excluded(pts, search, adj_ptr, adj_idx, slot_of, members, alt, alt_first, xy, nbr, nbr2, loo_m,
                            loo_tab, fan, closed, pitch, gate, evidence):
     """Every alternative reading ``alt[a]`` of the patch ``members`` is excluded by ``evidence``

@@ -21,7 +21,7 @@ from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
 from pipeline.vision.identity.neighbours import _adj
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _predict_free(pts, blob_of, xy, nbr, pitch):
     """Predicted image position and local pitch (px) of every free slot with a usable fit from its
     identified neighbours; ``scale`` 0 where there is none."""
@@ -69,7 +69,7 @@ def certify_whole(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> bool:
     return lat.translation_lattice or _centre_holds(pts, slot_of, members, lat)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _whole_kernel(pts, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed, pitch, gate, limit, alt,
                   alt_first, evidence):
     """:func:`certify_whole` without the circular patterns' centre test."""

@@ -20,7 +20,7 @@ from pipeline.vision.identity.neighbours import _adj
 from pipeline.vision.nearest import nearest, nearest_swept, y_order
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
                  pitch, gate, order, stop_after):
     """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
@@ -81,7 +81,7 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
     return status
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
     """The two blobs nearest to (x, y), as :func:`nearest` finds them (:func:`nearest_swept`)."""
     if sweep[0] == 0:
@@ -92,7 +92,7 @@ def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
         nearest(pts, x, y, 2, two, two_d2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc,
                 two, two_d2, K, by_y, ys, sweep, extrapolation):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.

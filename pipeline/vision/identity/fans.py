@@ -12,7 +12,7 @@ from pipeline.vision.identity.fits import _fit_sums
 from pipeline.vision.nearest import nearest
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fan_turns_once(p, c, ring, m):
     """Do the points ``p[ring[:m]]`` surround ``p[c]`` as a closed fan: every triangle
     (c, ring[i], ring[i+1]) counter-clockwise and the fan turning once about ``c``? (With every step
@@ -36,7 +36,7 @@ def _fan_turns_once(p, c, ring, m):
     return turns == 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _embedded(pts, search, adj_ptr, adj_idx, b, s, blob_of, xy, fan, closed, pitch, gate, ring, near, near_d2,
               acc):
     """Is blob ``b`` the vertex of an intact image of its slot's design fan (deformed-ring

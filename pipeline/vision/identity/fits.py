@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.vision.identity.constants import LOCAL_ONLY, MAX_STRETCH
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc):
     """Sums over points ``0..m-1`` of (slots, blobs) for :func:`_fit`, coordinates taken relative to
     (ox, oy) in the design and (ou, ov) in the image (keeps the downdated sums well conditioned),
@@ -134,13 +134,13 @@ def _smooth(l00, l01, l10, l11, max_stretch):
     return not s_max > max_stretch * s_min
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fit(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch):
     """:func:`_fit_map` with the stretch limit :data:`MAX_STRETCH`."""
     return _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, MAX_STRETCH)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, max_stretch):
     """Affine map design -> image from the points summed in ``acc`` (:func:`_fit_sums`) without
     point ``skip`` (-1: none).
@@ -178,7 +178,7 @@ def _fit_map(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, pitch, max_stretc
     return 1, mx, my, mu, mv, l00, l01, l10, l11
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _loo_design(xy, nbr, nbr2, pitch):
     """The design half of every leave-one-out fit of :func:`_loo_status` when a slot's whole
     neighbourhood is identified (the common case): ``m`` (N,) the number of points fitted (the slot
@@ -236,7 +236,7 @@ def _loo_design(xy, nbr, nbr2, pitch):
     return m_of, tab
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fit_tab(xy, pts, slots, blobs, acc, skip, ox, oy, ou, ov, row):
     """:func:`_fit` (point ``skip`` left out) with its design half taken from a row of the table of
     :func:`_loo_design`; the image half is :func:`_fit_map`'s (:func:`_image_half`)."""

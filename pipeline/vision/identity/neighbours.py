@@ -4,11 +4,15 @@ structure: :func:`pipeline.vision.nearest.nearest` scans the few hundred blob ce
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 
 
-_MESHES: dict = {}
+#: Per thread: the two camera views of a frame are identified at once on two threads
+#: (:func:`pipeline.threads.both_views`), each with its own triangulation.
+_LOCAL = threading.local()
 _NO_ADJ = (np.zeros(1, np.int64), np.zeros(0, np.int64))
 
 
@@ -17,19 +21,19 @@ def use_triangulation(pts: np.ndarray, simplices: np.ndarray | None) -> None:
     passed to :func:`certify`), which ring coding has computed anyway: a blob whose Delaunay
     neighbours are exactly its design fan has an empty fan without a neighbour search. ``None``
     forgets the registered triangles (the emptiness test then searches)."""
-    _MESHES.clear()
+    _LOCAL.mesh = None
     if simplices is not None and len(simplices):
-        _MESHES[id(pts)] = (pts, _adjacency(np.ascontiguousarray(simplices, dtype=np.int64), len(pts)))
+        _LOCAL.mesh = (pts, _adjacency(np.ascontiguousarray(simplices, dtype=np.int64), len(pts)))
 
 
 def _adj(pts: np.ndarray):
-    hit = _MESHES.get(id(pts))
+    hit = getattr(_LOCAL, "mesh", None)
     if hit is not None and hit[0] is pts:
         return hit[1]
     return (np.zeros(len(pts) + 1, np.int64), _NO_ADJ[1])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _adjacency(simp, n):
     """Neighbour lists (CSR: ``ptr`` (n+1,), ``idx``) of the vertices of triangles ``simp``."""
     cnt = np.zeros(n + 1, np.int64)

@@ -123,7 +123,7 @@ def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, i
     return 2.0 * xy - then[ids]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     """Each previous marker's current position predicted by the affine map of its neighbours' motion
     (previous -> current positions of the neighbours ``nb`` within reach ``near`` that have a
