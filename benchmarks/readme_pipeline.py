@@ -67,8 +67,9 @@ def _latency_row(lat: Mapping[str, Any]) -> tuple[str, str, str, str]:
     frames = int(_metric(lat, "frames_per_design") or 0)
     views = _metric(lat, "view_threads")
     where = "one thread" if views is None or int(views) == 1 else "the two views on two threads"
+    both = "; detect and match add up both views' work, views is its wall time" if where != "one thread" else ""
     what = (f"latency, raw stereo frame → surface, {where} ({frames} analytic frames a design{load}{nice}; "
-            "median per stage in ms)")
+            f"median per stage in ms{both})")
     got = (f"{'; '.join(parts)}; the fixed reference job ran {_fmt(_metric(lat, 'reference_ms_median'), 3)} ms "
            f"(the frame in its units: {_fmt(_metric(lat, 'total_over_reference'), 3)}, worst design)")
     return what, got, f"paper {PAPER_LATENCY_MS:g} ms; goal ≤ {GOAL_MEDIAN_MS:g} ms median — {', '.join(met)}", \
