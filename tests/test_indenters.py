@@ -72,6 +72,18 @@ def test_validation_errors_name_the_problem():
     assert "h_mm" in indenter_params("gaussian")
 
 
+def test_every_indenter_takes_the_skins_friction_on_its_material():
+    """``friction`` is the skin's Coulomb coefficient on the part (not a shape parameter): None by default (the
+    design's), validated like the design key, parsed from the CLI, and the same shape whatever its value."""
+    assert make_indenter("sphere").friction is None
+    resin = make_indenter("sphere", **parse_params("sphere", ["radius=8", "friction=0.35"]))
+    assert resin.friction == 0.35 and resin.params == make_indenter("sphere", radius_mm=8).params
+    assert make_indenter("letter", char="e", friction=0).friction == 0.0
+    for bad in (-0.1, 11.0, "rough", float("nan")):
+        with pytest.raises(IndenterError, match="friction"):
+            make_indenter("sphere", friction=bad)
+
+
 def test_sensor_heightmap_depth_and_yaw():
     g = make_indenter("gaussian", sigma2_mm2=10)
     hm = g.sensor_heightmap(0, 0, 3.0, 0.0)

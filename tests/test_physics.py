@@ -297,8 +297,9 @@ def test_direct_solve_refuses_friction():
 
 
 def test_friction_comes_from_the_design_unless_given():
-    """The coefficient a press uses is the design's ``[twin] friction`` (default 1), overridden by the caller's; a
-    frictional model carries the x-y stick ties of every free outer vertex, a frictionless one none."""
+    """The coefficient a press uses is the design's ``[twin] friction`` (default 1), overridden by the indenter's
+    own (its material) and by the caller's; a frictional model carries the x-y stick ties of every free outer
+    vertex, a frictionless one none."""
     d = load_design("hexagon127")
     ind = make_indenter("gaussian", h_mm=5, sigma2_mm2=50)
     rough = SkinSim(d, ind, mesh=COARSE)
@@ -308,6 +309,12 @@ def test_friction_comes_from_the_design_unless_given():
     assert plain.friction == 0.0 and plain.model.neq == 0
     with pytest.raises(PhysicsError, match="coefficient"):
         SkinSim(d, ind, mesh=COARSE, friction=-0.1)
+    resin = make_indenter("gaussian", h_mm=5, sigma2_mm2=50, friction=0.4)
+    assert SkinSim(d, resin, mesh=COARSE).friction == 0.4
+    assert SkinSim(d.with_overrides({"twin.friction": 0.7}), resin, mesh=COARSE).friction == 0.4
+    smooth = SkinSim(d, make_indenter("gaussian", h_mm=5, sigma2_mm2=50, friction=0.0), mesh=COARSE)
+    assert smooth.friction == 0.0 and smooth.model.neq == 0
+    assert SkinSim(d, resin, mesh=COARSE, friction=0.9).friction == 0.9
 
 
 def test_model_cache_gives_the_same_physics():

@@ -22,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--design", default=DEFAULT_DESIGN, help="built-in design name or TOML path")
     p.add_argument("--indenter", default="gaussian", help=f"one of: {', '.join(list_indenters())}")
     p.add_argument("--param", action="append", default=[], metavar="KEY=VALUE",
-                   help="indenter parameter, repeatable (e.g. sigma2=10; the unit suffix may be dropped)")
+                   help="indenter parameter, repeatable (e.g. sigma2=10; the unit suffix may be dropped); every "
+                        "indenter also takes friction=MU, the skin's Coulomb coefficient on the part's material")
     p.add_argument("--depth", type=float, default=5.0, help="press depth, mm (0 = touching the skin)")
     p.add_argument("--steps", type=int, default=1, help="frames captured during the press (depth·k/steps)")
     p.add_argument("--motion", default="press", choices=MOTIONS)
@@ -39,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(0.5 mm cells within 3 mm of the sensor axis plus face contact: what the Gaussian experiment "
                         "presses on; keeps Gaussians and spheres on the axis valid, ~10x slower)")
     p.add_argument("--friction", type=float, default=None, metavar="MU",
-                   help="Coulomb friction skin/indenter (default: the design's [twin] friction, 1.0 for the built-in "
+                   help="Coulomb friction skin/indenter for this press (default: the indenter's --param friction=MU, "
+                        "else the design's [twin] friction, 1.0 for the built-in "
                         "designs; 0: frictionless). Silicone-type elastomers on hard smooth polymers are usually quoted "
                         "at mu ~ 0.5-1.5 (not measured for Agilus30 on PLA); "
                         "touching vertices stick to the indenter and slide where the tangential force exceeds mu times the "

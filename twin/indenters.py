@@ -8,7 +8,8 @@ and a translation, so that at press depth ``d`` the indenter's top is at sensor 
 in the sensor frame; :func:`sensor_to_indenter_xy` is the one place the mounting is written down.
 
 Registered names: ``gaussian``, ``sine``, ``sphere``, ``letter``, ``flat``, ``marker_board``, ``chessboard``,
-``terrain`` (see :func:`list_indenters` / :func:`indenter_params`).
+``terrain`` (see :func:`list_indenters` / :func:`indenter_params`). Each also takes ``friction``, the skin's
+Coulomb coefficient on the part's material (default: the design's).
 
 Collision: every indenter collides in MuJoCo as a height field sampled from ``height`` (its true,
 possibly non-convex shape — sine valleys, letter counters, terrain), never as a convex hull.
@@ -78,6 +79,9 @@ class Indenter:
     name, params : registry name and validated parameters
     half_size_mm : (hx, hy) half extent of the part in its own x and y (mm)
     top_mm : highest point of the contact face (mm)
+    friction : the Coulomb coefficient of the skin on this part's material (e.g. a resin print smoother than a
+        PLA one), or None for the design's ``[twin] friction``; a press's own ``friction`` overrides both
+        (:func:`twin.stick.resolve_friction`)
     """
 
     name: str
@@ -85,6 +89,7 @@ class Indenter:
     half_size_mm: tuple[float, float]
     _height: Callable[[np.ndarray, np.ndarray], np.ndarray] = field(repr=False)
     top_mm: float = 0.0
+    friction: float | None = None
 
     def height(self, x_mm, y_mm) -> np.ndarray:
         """Contact-face height (mm) at own-frame points; NaN off the part. Broadcasts its inputs."""
@@ -265,9 +270,18 @@ def _resolve_key(name: str, key: str, spec: Mapping[str, Param]) -> str:
     raise IndenterError(f"indenter {name!r}: unknown parameter {key!r} (allowed: {', '.join(spec)})")
 
 
-def make_indenter(name: str, **params: Any) -> Indenter:
-    """Build a registered indenter; parameters may be abbreviated by dropping the unit (``sigma2``)."""
+#: Not a shape parameter: every indenter takes it (``make_indenter(..., friction=MU)``, ``--param friction=MU``).
+FRICTION_KEY = "friction"
+
+
+def make_indenter(name: str, *, friction: Any = None, **params: Any) -> Indenter:
+    """Build a registered indenter; parameters may be abbreviated by dropping the unit (``sigma2``).
+    ``friction``: the skin's Coulomb coefficient on this part (None: the design's), in [0, MAX_FRICTION]."""
     spec = indenter_params(name)
+    if friction is not None:
+        from pipeline.design import MAX_FRICTION
+
+        friction = Param(FRICTION_KEY, None, float, 0.0, MAX_FRICTION).check(friction, f"indenter {name!r}")
     values = {k: p.default for k, p in spec.items()}
     for key, value in params.items():
         values[_resolve_key(name, key, spec)] = value
@@ -277,7 +291,7 @@ def make_indenter(name: str, **params: Any) -> Indenter:
             raise IndenterError(f"indenter {name!r}: parameter {k!r} is required")
         checked[k] = p.check(values[k], f"indenter {name!r}")
     half, fn, top = _REGISTRY[name][1](checked)
-    return Indenter(name, checked, (float(half[0]), float(half[1])), fn, float(top))
+    return Indenter(name, checked, (float(half[0]), float(half[1])), fn, float(top), friction)
 
 
 def parse_params(name: str, items: Sequence[str]) -> dict[str, Any]:
@@ -288,6 +302,9 @@ def parse_params(name: str, items: Sequence[str]) -> dict[str, Any]:
         if "=" not in item:
             raise IndenterError(f"--param {item!r}: expected key=value")
         key, value = item.split("=", 1)
+        if key.strip() == FRICTION_KEY:
+            out[FRICTION_KEY] = value.strip()
+            continue
         k = _resolve_key(name, key.strip(), spec)
         out[k] = value.strip() if spec[k].kind is str else value
     return out

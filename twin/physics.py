@@ -119,7 +119,7 @@ class SkinSim(SkinReadout):
         self.timestep_s = float(timestep_s)
         t0 = time.perf_counter()
         self.mesh = m = build_mesh(design, mesh)
-        self.friction = resolve_friction(design, friction)
+        self.friction = resolve_friction(design, friction, indenter)
         # the compiled model (twin.model), and the index arrays beside it under the names of twin.model._DERIVED
         self.model, derived, self.model_from_cache = _model.load(design, indenter, m, mesh, self.timestep_s,
                                                                  self.friction)

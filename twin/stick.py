@@ -55,8 +55,11 @@ def check_friction(mu) -> float:
     return mu
 
 
-def resolve_friction(design, friction: float | None) -> float:
-    """The Coulomb coefficient a press uses: ``friction`` if given, else the design's ``[twin] friction``."""
+def resolve_friction(design, friction: float | None, indenter=None) -> float:
+    """The Coulomb coefficient a press uses: ``friction`` if given, else the indenter's own (its material,
+    :attr:`twin.indenters.Indenter.friction`), else the design's ``[twin] friction``."""
+    if friction is None and indenter is not None:
+        friction = getattr(indenter, "friction", None)
     return check_friction(design.twin_params()["friction"] if friction is None else friction)
 
 
