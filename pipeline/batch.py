@@ -80,6 +80,8 @@ def reconstruct(frames: Iterable[StereoFrame], reconstructor: Reconstructor, out
                    "tracker": reconstructor.tracker_name, "n_gel": reconstructor.n_gel, "frames": len(per_frame),
                    "units": {"xyz": "mm", "time": "ms"},
                    "median_total_ms": float(np.median(totals)) if len(totals) else None,
+                   "p95_total_ms": float(np.percentile(totals, 95)) if len(totals) else None,
+                   "view_threads": getattr(reconstructor, "view_threads", 1),
                    "skipped": list(skipped_source or []),
                    "no_markers": [f["index"] for f in per_frame if f["matched"] == 0],
                    "stopped": stopped, "per_frame": per_frame}

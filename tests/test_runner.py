@@ -188,6 +188,8 @@ def test_cli_reconstruct_writes_outputs(tmp_path, capsys):
     assert sum("127/127 markers" in line for line in lines) == 3
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == 3 and summary["per_frame"][2]["max_abs_dz_mm"] == pytest.approx(2.0, abs=0.05)
+    assert summary["p95_total_ms"] >= summary["median_total_ms"] > 0 and summary["view_threads"] in (1, 2)
+    assert "p95" in lines[-1] and "ms/frame" in lines[-1]
     for name in ("markers_0002.csv", "markers_0002.ply", "skin_0002.ply", "heightmap_0002.npz",
                  "surface_0002.stl", "surface_0002.ply", "preview_0002.png"):
         assert (out / name).stat().st_size > 0, name

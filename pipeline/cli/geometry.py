@@ -171,7 +171,10 @@ def _reconstruct(args: argparse.Namespace) -> int:
     with frame_priority(args.nice):
         summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
                               preview_every=args.preview_every)
-    line = f"{summary['frames']} frame(s), median {summary['median_total_ms']:.1f} ms/frame"
+    line = f"{summary['frames']} frame(s)"
+    if summary["median_total_ms"] is not None:
+        line += (f", median {summary['median_total_ms']:.1f} ms/frame (p95 {summary['p95_total_ms']:.1f}; "
+                 f"views on {summary['view_threads']} thread(s))")
     if summary["skipped"]:
         line += f"; {len(summary['skipped'])} unreadable frame(s) skipped: " + \
             ", ".join(s["file"] for s in summary["skipped"][:8]) + ("..." if len(summary["skipped"]) > 8 else "")
