@@ -11,6 +11,7 @@ import numba
 import numpy as np
 
 from pipeline.vision.identity.consistency import _consistency
+from pipeline.vision.identity.centring import _no_better_centre
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_CENTRE,
                                                 RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM, RING_MIN_MARKERS,
                                                 RING_ROUND, RING_SHAPE)
@@ -237,7 +238,8 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
 
 def _anchored(pts, slot_of, members, lat) -> bool:
     """Is the patch ``members`` (blob indices) excluded from every alternative reading?"""
-    if not lat.translation_lattice and not _centre_holds(pts, slot_of, members, lat):
+    if not lat.translation_lattice and not (_centre_holds(pts, slot_of, members, lat)
+                                            and _no_better_centre(pts, slot_of, members, lat)):
         # rings of equally spaced markers read one ring further out, turned, or shifted by a
         # marker are locally almost a hexagonal lattice; only the rings about the centre fix the
         # reading: they must be concentric circles about one point
