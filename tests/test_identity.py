@@ -508,6 +508,22 @@ def test_a_circular_reading_centred_on_a_ring_one_marker_is_withdrawn(monkeypatc
     assert _wrong(code_rings(_blobs(pts), design).ids, truth) > 100
 
 
+def test_the_identity_search_draws_the_views_of_these_tests(capsys):
+    """``benchmarks.identity_search`` (the searches docs/IDENTIFICATION.md records, rerun from the CLI) builds
+    the very views this module's helpers build, and a short search reports what it drew."""
+    from benchmarks.identity_search import main, pressed_view, search
+
+    seed, sigma, lateral, rate, centre = _CENTRED_ONE_OFF_VIEW
+    a = pressed_view(DESIGNS["circular217_dome"], seed, sigma, lateral, rate, centre)
+    b = _pressed_view_with_defects(seed, "circular217_dome", sigma, lateral, rate, centre)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    res = search("circular217_dome", 6, 777)
+    assert res["in_scope"] == len(res["views"]) <= 6 and res["wrong_ids"] == 0
+    assert all(v["correct"] + v["wrong"] <= v["present"] + round(v["rate"] * 217) for v in res["views"])
+    assert main(["--draws", "0"]) == 2 and "at least one draw" in capsys.readouterr().err
+
+
 _STEREO_KEPT = pytest.mark.xfail(strict=True, reason="known wrong pairs: the spurious blob stands where the other "
                                  "view's marker's rays meet the skin, within the stereo check's gates")
 

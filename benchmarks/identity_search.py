@@ -1,0 +1,122 @@
+"""A search for wrong ids beyond the identification benchmark's conditions: single views pressed 5 mm by
+sharp Gaussians, off the axis, with missing and spurious blobs.
+
+The identification benchmark holds the certainty rule to zero wrong ids in its own conditions; the searches
+recorded in docs/IDENTIFICATION.md drew wider. This module draws searches of that kind from a seed, so a change
+to the rule can be run against them (the off-axis circular217 searches recorded there are these draws: seed
+777, 4,000 draws, and seed 20261127, 1,000; the earlier sharp-press searches drew patterns and parameters in
+another order)::
+
+    python -m benchmarks.identity_search --design circular217_dome --draws 4000 --seed 777
+
+Each draw: a defect seed, sigma uniform in ``--sigma`` (mm), lateral bulge in [0, ``--lateral``], missing
+and spurious rate each in [0, ``--rate``], press centre uniform in angle and radius in [0, ``--off``] mm; the
+left view of the analytic press (:func:`pipeline.io.synthetic.gaussian_press_markers` through the nominal
+calibration and the refracting stack) with the defects of the identification benchmark
+(:func:`benchmarks.experiments.identification.add_defects`). A view is in scope when no two markers are
+closer than half the median separation (such pins merge in detection). Prints the views in scope, the wrong
+ids and the views holding them, and the coverage; ``--out FILE`` writes every view's figures as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from pipeline.errors import UserError
+
+__all__ = ["pressed_view", "search"]
+
+DEPTH_MM = 5.0
+
+
+def pressed_view(design, seed: int, sigma_mm: float, lateral: float, rate: float,
+                 centre_xy_mm: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(blob centres px, true id per blob (-1 spurious), in scope) of one draw (module notes)."""
+    from benchmarks.experiments.identification import add_defects
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration
+
+    xyz = gaussian_press_markers(design, DEPTH_MM, sigma_mm=sigma_mm, lateral=lateral, centre_xy_mm=centre_xy_mm)
+    uv = np.ascontiguousarray(project_through_stack(xyz, nominal_calibration(design), design)[0])
+    nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+    pts, truth, _ = add_defects(uv, np.random.default_rng(seed), missing=rate, spurious=rate,
+                                px_per_sep=float(np.median(nn)))
+    return pts, truth, bool(nn.min() >= 0.5 * np.median(nn))
+
+
+def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral: float = 0.6, rate: float = 0.1,
+           off_mm: float = 6.0, progress: bool = False) -> dict:
+    """Run the search; returns {"in_scope", "wrong_ids", "wrong_views", "coverage", "seconds", "views": [...]}."""
+    from tqdm import tqdm
+
+    from pipeline.design import load_design
+    from pipeline.types import Blobs
+    from pipeline.vision.dtrc import code_rings
+
+    if draws < 1:
+        raise UserError(f"--draws {draws}: at least one draw")
+    if not 0 < sigma[0] <= sigma[1]:
+        raise UserError(f"--sigma {sigma[0]:g} {sigma[1]:g}: need 0 < low <= high (mm)")
+    if not (0 <= lateral and 0 <= rate < 0.5 and 0 <= off_mm):
+        raise UserError("--lateral, --rate and --off must be >= 0 (rate below 0.5)")
+    design = load_design(design_name)
+    rng = np.random.default_rng(seed)
+    views, t0 = [], time.perf_counter()
+    for _ in tqdm(range(draws), desc=f"search {design.name}", disable=not progress, leave=False):
+        s = int(rng.integers(2**32))
+        sg, lt, rt = float(rng.uniform(*sigma)), float(rng.uniform(0, lateral)), float(rng.uniform(0, rate))
+        r, a = float(rng.uniform(0, off_mm)), float(rng.uniform(0, 2 * np.pi))
+        centre = (r * np.cos(a), r * np.sin(a))
+        pts, truth, in_scope = pressed_view(design, s, sg, lt, rt, centre)
+        if not in_scope:
+            continue
+        ids = code_rings(Blobs(pts, np.full(len(pts), 3.0), np.ones(len(pts))), design).ids
+        coded = ids >= 0
+        views.append({"seed": s, "sigma_mm": sg, "lateral": lt, "rate": rt, "centre_mm": list(centre),
+                      "present": int(np.count_nonzero(truth >= 0)),
+                      "correct": int(np.count_nonzero(ids[coded] == truth[coded])),
+                      "wrong": int(np.count_nonzero(ids[coded] != truth[coded]))})
+    present = sum(v["present"] for v in views)
+    return {"design": design.name, "draws": draws, "seed": seed, "in_scope": len(views),
+            "wrong_ids": sum(v["wrong"] for v in views), "wrong_views": sum(v["wrong"] > 0 for v in views),
+            "coverage": sum(v["correct"] for v in views) / present if present else float("nan"),
+            "seconds": time.perf_counter() - t0, "views": views}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.identity_search", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--design", default="circular217_dome")
+    ap.add_argument("--draws", type=int, default=4000)
+    ap.add_argument("--seed", type=int, default=777)
+    ap.add_argument("--sigma", type=float, nargs=2, default=(1.0, 5.0), metavar=("LOW", "HIGH"))
+    ap.add_argument("--lateral", type=float, default=0.6)
+    ap.add_argument("--rate", type=float, default=0.1)
+    ap.add_argument("--off", type=float, default=6.0, help="largest distance of the press centre from the axis, mm")
+    ap.add_argument("--out", default=None, help="write every view's figures as JSON")
+    args = ap.parse_args(argv)
+    try:
+        res = search(args.design, args.draws, args.seed, sigma=tuple(args.sigma), lateral=args.lateral,
+                     rate=args.rate, off_mm=args.off, progress=sys.stderr.isatty())
+    except UserError as exc:
+        print(f"identity_search: {exc}", file=sys.stderr)
+        return 2
+    print(f"{res['design']}: {res['in_scope']} of {res['draws']} views in scope, {res['wrong_ids']} wrong id(s) in "
+          f"{res['wrong_views']} view(s), coverage {100 * res['coverage']:.1f} %, {res['seconds']:.0f} s")
+    for v in res["views"]:
+        if v["wrong"]:
+            print(f"  wrong: seed {v['seed']}, sigma {v['sigma_mm']:.4f} mm, lateral {v['lateral']:.4f}, rate "
+                  f"{v['rate']:.4f}, centre ({v['centre_mm'][0]:.4f}, {v['centre_mm'][1]:.4f}) mm: {v['wrong']} of "
+                  f"{v['correct'] + v['wrong']}")
+    if args.out:
+        from pipeline.io.atomic import atomic_write_json
+
+        atomic_write_json(args.out, res, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
