@@ -11,9 +11,9 @@ import numba
 import numpy as np
 
 from pipeline.vision.identity.consistency import _consistency
-from pipeline.vision.identity.centring import _no_better_centre
+from pipeline.vision.identity.centring import _centre_xy, _no_better_centre, _ring_gather
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_CENTRE,
-                                                RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM, RING_MIN_MARKERS,
+                                                RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM,
                                                 RING_ROUND, RING_SHAPE)
 from pipeline.vision.identity.fits import _design_half, _fit, _fit_sums, _gather, _image_half
 from pipeline.vision.identity.neighbours import _adj
@@ -147,18 +147,17 @@ def _centre_holds(pts, slot_of, members, lat) -> bool:
     moves the rings' centres apart by ~0.1 radius) and their shape (linear parts proportional to
     within :data:`RING_SHAPE`: a press changes each ring's radius, a camera's perspective is common to all).
     About a marker of ring 1 the pattern also shows rings of about six and twelve markers, but its
-    third ring is not eighteen markers 20 deg apart."""
-    return _centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
+    third ring is not eighteen markers 20 deg apart; where a press bends the rings and defects thin
+    them to the coverage allowed, the same blobs read about a marker of ring 1 must not fit them
+    better (:func:`~pipeline.vision.identity.centring._no_better_centre`)."""
+    return (_centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
+            and _no_better_centre(pts, slot_of, members, lat))
 
 
 @numba.njit(cache=True, nogil=True)
 def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre):
     """:func:`_centre_holds` (compiled)."""
-    c0x = 0.0
-    c0y = 0.0
-    for s in range(len(layer_of)):
-        if layer_of[s] == 0:
-            c0x, c0y = xy[s, 0], xy[s, 1]
+    c0x, c0y = _centre_xy(xy, layer_of)
     L = np.zeros((3, 2, 2))
     cen = np.zeros((3, 2))
     res = np.zeros(3)
@@ -166,17 +165,8 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
     slots = np.empty(len(members), np.int64)
     acc = np.empty(12)
     for k in range(1, 4):
-        size = 0
-        for s in range(len(layer_of)):
-            if layer_of[s] == k:
-                size += 1
-        m = 0
-        for b in members:
-            if layer_of[slot_of[b]] == k:
-                sel[m] = b
-                slots[m] = slot_of[b]
-                m += 1
-        if m < max(int(math.ceil(RING_COVERAGE * size)), RING_MIN_MARKERS):
+        m = _ring_gather(slot_of, members, layer_of, k, RING_COVERAGE, sel, slots)
+        if m < 0:
             return False
         acc = _fit_sums(xy, pts, slots, sel, m, c0x, c0y, 0.0, 0.0, acc)
         ok, mx, my, mu, mv, l00, l01, l10, l11 = _fit(xy, pts, slots, sel, acc, -1, c0x, c0y, 0.0, 0.0,
@@ -238,8 +228,7 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
 
 def _anchored(pts, slot_of, members, lat) -> bool:
     """Is the patch ``members`` (blob indices) excluded from every alternative reading?"""
-    if not lat.translation_lattice and not (_centre_holds(pts, slot_of, members, lat)
-                                            and _no_better_centre(pts, slot_of, members, lat)):
+    if not lat.translation_lattice and not _centre_holds(pts, slot_of, members, lat):
         # rings of equally spaced markers read one ring further out, turned, or shifted by a
         # marker are locally almost a hexagonal lattice; only the rings about the centre fix the
         # reading: they must be concentric circles about one point

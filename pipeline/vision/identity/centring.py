@@ -14,32 +14,50 @@ from pipeline.vision.identity.fits import _design_half, _fit_sums, _image_half
 
 
 @numba.njit(cache=True, nogil=True)
-def _ring_residual(pts, slot_of, members, xy, layer_of, min_cov):
-    """The largest residual of the per-ring affine fits of rings 1-3 (design ring -> the blobs of
-    ``members`` that ``slot_of`` puts on it), over the mean radius of ring 1 about its fit's centre, as
-    :func:`_centre_kernel` measures it; -1 where a ring has fewer than ``min_cov`` of its slots (or 4)."""
+def _centre_xy(xy, layer_of):
+    """Design x-y of the centre slot (ring 0) of a circular pattern."""
     c0x = 0.0
     c0y = 0.0
     for s in range(len(layer_of)):
         if layer_of[s] == 0:
             c0x, c0y = xy[s, 0], xy[s, 1]
+    return c0x, c0y
+
+
+@numba.njit(cache=True, nogil=True)
+def _ring_gather(slot_of, members, layer_of, k, min_cov, sel, slots):
+    """The blobs of ``members`` that ``slot_of`` puts on ring ``k`` into ``sel`` and their slots into ``slots``;
+    their count, or -1 when they are fewer than ``min_cov`` of the ring's slots or fewer than
+    :data:`RING_MIN_MARKERS` (too few to judge the ring by)."""
+    size = 0
+    for s in range(len(layer_of)):
+        if layer_of[s] == k:
+            size += 1
+    m = 0
+    for b in members:
+        if slot_of[b] >= 0 and layer_of[slot_of[b]] == k:
+            sel[m] = b
+            slots[m] = slot_of[b]
+            m += 1
+    if m < max(int(math.ceil(min_cov * size)), RING_MIN_MARKERS):
+        return -1
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def _ring_residual(pts, slot_of, members, xy, layer_of, min_cov):
+    """The largest residual of the per-ring affine fits of rings 1-3 (design ring -> the blobs of
+    ``members`` that ``slot_of`` puts on it), over the mean radius of ring 1 about its fit's centre, as
+    :func:`_centre_kernel` measures it; -1 where a ring has fewer than ``min_cov`` of its slots (or 4)."""
+    c0x, c0y = _centre_xy(xy, layer_of)
     sel = np.empty(len(members), np.int64)
     slots = np.empty(len(members), np.int64)
     acc = np.empty(12)
     worst = 0.0
     rad1 = 1.0
     for k in range(1, 4):
-        size = 0
-        for s in range(len(layer_of)):
-            if layer_of[s] == k:
-                size += 1
-        m = 0
-        for b in members:
-            if slot_of[b] >= 0 and layer_of[slot_of[b]] == k:
-                sel[m] = b
-                slots[m] = slot_of[b]
-                m += 1
-        if m < max(int(math.ceil(min_cov * size)), RING_MIN_MARKERS):
+        m = _ring_gather(slot_of, members, layer_of, k, min_cov, sel, slots)
+        if m < 0:
             return -1.0
         acc = _fit_sums(xy, pts, slots, sel, m, c0x, c0y, 0.0, 0.0, acc)
         _, mx, my, i00, i01, i11 = _design_half(acc[0], acc[1], acc[2], acc[5], acc[6], acc[7],

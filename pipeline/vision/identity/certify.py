@@ -12,7 +12,6 @@ from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchored, _beyond_hits, _centre_holds,
                                                 _components, _rotation_deg)
-from pipeline.vision.identity.centring import _no_better_centre
 from pipeline.vision.identity.consistency import _blob_of, _consistency, consistent
 from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
                                                 GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS, SEAM_LONGER,
@@ -67,8 +66,7 @@ def certify_whole(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> bool:
                          lat.alt_first, ANCHOR_EVIDENCE):
         return False
     members = np.arange(N, dtype=np.int64)
-    return lat.translation_lattice or (_centre_holds(pts, slot_of, members, lat)
-                                       and _no_better_centre(pts, slot_of, members, lat))
+    return lat.translation_lattice or _centre_holds(pts, slot_of, members, lat)
 
 
 @numba.njit(cache=True, nogil=True)
