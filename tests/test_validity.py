@@ -184,7 +184,7 @@ def test_a_roller_rim_carries_the_skin_edge_down_under_a_sine_wider_than_the_mod
     rim holds the skin's edge while the crests pass 5 mm below it, and the free skin beside it ends 0.057 mm
     inside the sine (over PENETRATION_MAX_MM). With a roller rim (MeshSpec(rim="roller")) the skin's edge slides
     down the mount's wall with the crests: it keeps its rest x-y, the indenter no longer reaches below any held
-    vertex, and the whole skin stays within the bound (measured 0.041 mm, settled, no fallback)."""
+    vertex, and the whole skin stays within the bound (measured 0.032 mm, settled, no fallback)."""
     from pipeline.design import load_design
     from twin import robot
     from twin.indenters import make_indenter

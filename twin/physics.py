@@ -291,6 +291,16 @@ class SkinSim(SkinReadout):
         settle steps, but 0.053 mm inside the indenter, over the 0.05 mm validity limit)."""
         if max_steps is None:
             max_steps = FRICTION_SETTLE_MAX_STEPS if len(self._stick_eq) else SETTLE_MAX_STEPS
+        o = self.model.opt
+        solver = o.tolerance, o.iterations
+        o.tolerance, o.iterations = _model.settle_solver_options(*solver)
+        try:
+            return self._settle(tol_mm, consecutive, max_steps, abort, damped_steps)
+        finally:
+            o.tolerance, o.iterations = solver
+
+    def _settle(self, tol_mm, consecutive, max_steps, abort, damped_steps) -> SettleStats:
+        """:meth:`settle` at the settle's solver options."""
 
         def with_anchors():   # the contact points settle to 1/CONTACT_POINT_SETTLE_SCALE of the markers' tolerance
             return (np.vstack([self.markers()[0], CONTACT_POINT_SETTLE_SCALE * self._contact_points_mm()]),)
