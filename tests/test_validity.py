@@ -184,7 +184,9 @@ def test_a_roller_rim_carries_the_skin_edge_down_under_a_sine_wider_than_the_mod
     rim holds the skin's edge while the crests pass 5 mm below it, and the free skin beside it ends 0.057 mm
     inside the sine (over PENETRATION_MAX_MM). With a roller rim (MeshSpec(rim="roller")) the skin's edge slides
     down the mount's wall with the crests: it keeps its rest x-y, the indenter no longer reaches below any held
-    vertex, and the whole skin stays within the bound (measured 0.032 mm, settled, no fallback)."""
+    vertex, and the whole skin stays within the bound (measured 0.032 mm, settled, no fallback). The direct solve
+    reaches that pose with every vertex outside the sine but faces 2.5 mm inside; with face contact it is checked
+    at the faces too and refused, so the press follows the path."""
     from pipeline.design import load_design
     from twin import robot
     from twin.indenters import make_indenter
@@ -202,6 +204,7 @@ def test_a_roller_rim_carries_the_skin_edge_down_under_a_sine_wider_than_the_mod
     assert now[:, 2].min() < rest[:, 2].min() - 1.0                   # and carried down along it
     assert v["rim_overlap_mm"] <= 1e-6
     assert v["valid"] and v["penetration_max_mm"] <= PENETRATION_MAX_MM, v["reasons"]
+    assert not stats.direct and sim.direct_rejections == 1
 
 
 def test_an_unknown_rim_is_refused():
