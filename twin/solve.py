@@ -5,8 +5,8 @@ follows the robot's path in small increments (holding while a contact lags) and 
 (:func:`settle`); :func:`solve_at` places the indenter at the pose directly, warm-starts the mesh
 geometrically and settles with mass-proportional damping. With frictionless contact the equilibrium
 depends on the pose only, so both reach the same state (σ² = 10, 5 mm: markers within 0.005 mm, 66
-instead of 273 steps); the direct result is kept only if no outer vertex (with face contact, no face) ends inside the indenter, else
-the state is restored and the path followed. :func:`twin.robot.execute` tries the direct solve first at
+instead of 273 steps); the direct result is kept only if no outer vertex (with face contact, no face) ends
+inside the indenter, else the state is restored and the path followed. :func:`twin.robot.execute` tries the direct solve first at
 every captured pose.
 """
 
@@ -41,7 +41,7 @@ SETTLE_DAMPED_STEPS = 400    # c = α m for at most this many steps more. Face c
                              # settles undamped is not touched (every earlier frame is reproduced bit for bit)
 DIRECT_DAMPING_PER_S = 10.0  # mass-proportional DOF damping c = α m while a direct solve settles (α = 10/s: the σ² = 10
                              # press settles in 66 steps instead of 156; 0: 156, 30: 82, 60: 116, 300: 256 followed)
-DIRECT_ACCEPT_MM = 0.1       # a direct solve is kept only if no free outer vertex (face) ends deeper inside the indenter
+DIRECT_ACCEPT_MM = 0.1       # a direct solve is kept only if no free outer vertex (or face) ends deeper inside
 DIRECT_ABORT_MM = 0.3        # ... and is abandoned (state restored) as soon as one is this deep
 DIRECT_CHECK_EVERY = 4       # steps between those checks while settling
 
@@ -121,8 +121,9 @@ def solve_at(sim: "SkinSim", x_mm: float, y_mm: float, depth_mm: float, yaw_deg:
     or around a sharp tip; so the result is accepted only if the sim converged and no free outer
     vertex ends more than ``accept_mm`` inside the indenter (checked every ``DIRECT_CHECK_EVERY``
     steps while settling, abandoned beyond ``abort_mm``), nor, with face contact, any point of the outer
-    faces at the end (the frame's own check, :meth:`~twin.physics.SkinSim.validity`). Otherwise the state before the call is
-    restored exactly and None returned: the caller follows the path instead (:meth:`~twin.physics.SkinSim.move_to`).
+    faces at the end (the frame's own check, :meth:`~twin.physics.SkinSim.validity`). Otherwise the state
+    before the call is restored exactly and None returned: the caller follows the path instead
+    (:meth:`~twin.physics.SkinSim.move_to`).
     With friction the equilibrium depends on the path: always None.
 
     Measured (hexagon127, 5 mm press): Gaussian σ² = 10 equilibrium within 0.004 mm of the followed

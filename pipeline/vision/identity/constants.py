@@ -114,7 +114,7 @@ RING_COVERAGE = 2.0 / 3.0
 RING_MIN_MARKERS = 4
 #: A reading that passes the centre test is withdrawn when the same blobs read with the centre on a
 #: marker of ring 1 (each slot moved by that marker's offset) fit rings 1-3 this many times better
-#: (largest per-ring affine residual, :func:`~pipeline.vision.identity.anchoring._ring_residual`), the
+#: (largest per-ring affine residual, :func:`~pipeline.vision.identity.centring._ring_residual`), the
 #: moved reading's rings holding at least RING_ALT_COVERAGE of their slots (fewer: not compared).
 #: Measured 2026-11-27 on 796 circular217 readings that reach the test (single views pressed 5 mm by
 #: Gaussians of sigma 1-5 mm up to 6 mm off the axis, 0-10 % missing and spurious blobs): correct
