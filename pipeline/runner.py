@@ -236,6 +236,19 @@ class Reconstructor:
                              np.union1d(matches.unmatched_ids, rejected))
         return kept, rejected, kept_cloud, tuple(r[good] for r in rays)
 
+    def _checked(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud, tuple]:
+        """:meth:`_stereo_check`, and the rejected ids not carried into the next frame as certain."""
+        out = self._stereo_check(matches)
+        if len(out[1]) and hasattr(self._tracker, "forget"):
+            self._tracker.forget(out[1])
+        return out
+
+    def identify(self, left: Blobs, right: Blobs) -> MarkerMatches:
+        """The identification stages of :meth:`process` on one frame's detected blobs: the tracker
+        (with what earlier frames left it) and the stereo check. The pairs kept; for benchmarks that
+        draw blobs directly (defects placed where a detector could not be made to put them)."""
+        return self._checked(self._tracker.update(left, right))[0]
+
     def _view(self, view: int, image: np.ndarray) -> tuple[Blobs, object, float, float]:
         """Detect one view's markers and, with a tracker that codes views apart, identify them (reads only
         earlier frames' state: the two views run at once, :func:`pipeline.threads.both_views`)."""
@@ -280,11 +293,9 @@ class Reconstructor:
         notes: list[str] = []
         matches, n_blobs, timings = self._match(frame)
         t = time.perf_counter()
-        matches, rejected, exact_cloud, rays = self._stereo_check(matches)
+        matches, rejected, exact_cloud, rays = self._checked(matches)
         timings["stereo_check"] = 1e3 * (time.perf_counter() - t)
         reasons = self._view_reasons()
-        if len(rejected) and hasattr(self._tracker, "forget"):
-            self._tracker.forget(rejected)     # not carried into the next frame as certain
         for i in rejected.tolist():
             reasons[int(i)] = self._stereo_reasons.get(int(i), "stereo check: not one marker in both views")
         if len(rejected):

@@ -39,6 +39,10 @@ Conditions:
   within 0.3 pattern radii, lateral bulge 0-0.3) projected through the nominal calibration and the
   refracting stack, each view with its own 3 % missing + 3 % spurious and 0.2 px noise;
   :func:`match_stereo` pairs the ids; a pair is wrong if either view's blob is not that marker.
+* ``twin_sequence``: the twin's skin pressed from rest to 5 mm in five frames by Gaussians and sines, read in
+  order as ``reconstruct`` reads recorded frames (the previous frame's ids, the stereo check), 3 % missing +
+  3 % spurious blobs per view and frame (:mod:`benchmarks.experiments.identification_twin`); a trial is a
+  frame. Left out, with a note, where MuJoCo is not installed.
 
 Designs: every built-in marker pattern (the skin variants of hexagon127 share its pattern).
 """
@@ -58,7 +62,7 @@ COVERAGE_GOALS = {"defects_3": 0.99, "defects_10": 0.95}
 PATTERN_DESIGNS = ("hexagon61_sep354", "hexagon127", "hexagon217_sep180", "square121", "circular217_dome")
 DEFECT_RATES = (0, 1, 3, 5, 10)
 CONDITIONS = tuple(f"defects_{r}" for r in DEFECT_RATES) + ("occlusion_15", "occlusion_15_rest", "jitter_30",
-                                                             "rotation_30", "press_stereo")
+                                                             "rotation_30", "press_stereo", "twin_sequence")
 REST_TURN_DEG = 2.0     # occlusion_15_rest: the view's in-plane turn against the rest pattern (a calibration's error)
 PX_PER_SEP = 36.0
 BASE_JITTER_SEP = 0.02
@@ -235,6 +239,10 @@ def run_trial(design, condition: str, rng: np.random.Generator, calib=None) -> d
         "coverage_occlusion_15_rest_min": "1",
         "coverage_complete_neighbourhood_occlusion_15_rest_min": "1",
         "coverage_press_stereo_min": "1",
+        "coverage_twin_sequence_min": "1",
+        "wrong_ids_twin_sequence": "1",
+        "twin_sequence_presses": "1",
+        "twin_sequence_frames_invalid": "1",
         "trials_per_condition": "1",
         "trials_total": "1",
         **{f"coverage_defects_3_{_key(d)}": "1" for d in PATTERN_DESIGNS},
@@ -251,8 +259,14 @@ def run(ctx: Context) -> Result:
     conditions = tuple(ctx.param("conditions", CONDITIONS))
     designs = ctx.designs(names)
     out = Result(designs=designs)
-    rows = []
-    total = len(designs) * len(conditions) * n_trials
+    from benchmarks.experiments import identification_twin as twin_cond
+
+    sequences = twin_cond.press_all(ctx, out, designs) if "twin_sequence" in conditions else {}
+    twin_trials = int(ctx.param("twin_trials", n_trials, quick=30))
+    if "twin_sequence" in conditions and not sequences:
+        conditions = tuple(c for c in conditions if c != "twin_sequence")
+    rows, twin_rows = [], []
+    total = len(designs) * sum(twin_trials if c == "twin_sequence" else n_trials for c in conditions)
     bar = ctx.bar(total=total, desc="identification")
     for design in designs:
         calib = nominal_calibration(design)
@@ -260,11 +274,14 @@ def run(ctx: Context) -> Result:
             rng = ctx.rng(f"{design.name}/{cond}")
             t0 = time.perf_counter()
             recs = []
-            for _ in range(n_trials):
+            if cond == "twin_sequence":
+                recs = twin_cond.read_trials(design, calib, sequences[design.name], rng, twin_trials, bar)
+                twin_rows.extend(twin_cond.table_rows(design, recs))
+            for _ in range(n_trials if cond != "twin_sequence" else 0):
                 recs.append(run_trial(design, cond, rng, calib))
                 bar.update(1)
             cov = np.array([r["correct"] / max(r["present"], 1) for r in recs])
-            row = {"design": design.name, "condition": cond, "trials": n_trials,
+            row = {"design": design.name, "condition": cond, "trials": len(recs),
                    "wrong_ids": int(sum(r["wrong"] for r in recs)),
                    "trials_with_wrong_ids": int(sum(r["wrong"] > 0 for r in recs)),
                    "coverage_mean": float(cov.mean()), "coverage_min": float(cov.min()),
@@ -276,15 +293,18 @@ def run(ctx: Context) -> Result:
             rows.append(row)
     bar.close()
     out.tables["conditions"] = rows
+    if twin_rows:
+        out.tables["twin_sequence"] = twin_rows
 
     def rows_of(cond):
         return [r for r in rows if r["condition"] == cond]
 
     out.metric("wrong_ids_total", sum(r["wrong_ids"] for r in rows), "1")
-    for cond in ("rotation_30", "jitter_30"):
+    for cond in ("rotation_30", "jitter_30", "twin_sequence"):
         if rows_of(cond):
             out.metric(f"wrong_ids_{cond}", sum(r["wrong_ids"] for r in rows_of(cond)), "1")
-    for cond in ("defects_0", "defects_3", "defects_10", "occlusion_15", "occlusion_15_rest", "press_stereo"):
+    for cond in ("defects_0", "defects_3", "defects_10", "occlusion_15", "occlusion_15_rest", "press_stereo",
+                 "twin_sequence"):
         if rows_of(cond):
             out.metric(f"coverage_{cond}_min", min(r["coverage_mean"] for r in rows_of(cond)), "1")
     for cond in ("occlusion_15", "occlusion_15_rest"):
