@@ -88,10 +88,13 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         their ids where the frame-to-frame map certifies which blob each became
         (:func:`pipeline.vision.identity.frame_to_frame`; the frame before the previous one, when
         given, sets where each marker is expected at its last velocity).
-    history : sequence of (xy_px (K, 2), ids (K,)), optional
+    history : sequence of (xy_px (K, 2), ids (K,)[, lost (K,) bool]), optional
         The identified markers of the frames before the previous one, most recent first: a marker lost
         since is re-acquired when its neighbours' motion from its last certified position certifies a
-        free blob (:func:`pipeline.vision.identity.reacquire.reacquire`). Used only with ``previous``.
+        free blob (:func:`pipeline.vision.identity.reacquire.reacquire`). An entry with ``lost`` holds
+        also markers that were not identified there, placed where their neighbours' motion carried
+        them (:func:`pipeline.vision.identity.reacquire.carry_lost`): only those may be re-acquired
+        from it. Used only with ``previous``.
 
     Returns
     -------
@@ -175,7 +178,8 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         previous = tuple(np.asarray(a, np.float64).reshape(-1, 2) if k % 2 == 0 else np.asarray(a, np.int64)
                          for k, a in enumerate(previous[:4]))
     if history is not None:
-        history = [(np.asarray(xy, np.float64).reshape(-1, 2), np.asarray(i, np.int64)) for xy, i in history]
+        history = [(np.asarray(h[0], np.float64).reshape(-1, 2), np.asarray(h[1], np.int64),
+                    *([np.asarray(h[2], bool)] if len(h) > 2 else [])) for h in history]
     ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous, history)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),

@@ -14,7 +14,8 @@ from pipeline.design import SensorDesign
 from pipeline.types import Blobs, MarkerMatches
 from pipeline.vision.dtrc.coding import RingCoding, code_rings
 from pipeline.vision.dtrc.ring_codes import _marker_count
-from pipeline.vision.identity.reacquire import REACQUIRE_FRAMES
+from pipeline.vision.identity import lattice_of
+from pipeline.vision.identity.reacquire import REACQUIRE_FRAMES, carry_lost
 
 #: A first frame's view that ring coding identifies to fewer than this fraction of its blobs (the
 #: lattice registration's threshold, ``SEED_BELOW``) takes the rest pattern's reading when that reading
@@ -133,6 +134,9 @@ def _aligned(rest_xy: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return cur
 
 
+_NONE = (np.empty((0, 2)), np.empty(0, np.int64))
+
+
 class DTRCTracker:
     """DTRC tracking: every frame is re-coded, so identity survives arbitrarily large motion; the
     previous frame's identified markers propose ids where coding alone cannot (crowding, large
@@ -169,6 +173,7 @@ class DTRCTracker:
         self._previous: list | None = None
         self._before: list | None = None
         self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
+        self._lost: list = [_NONE] * 2  # per view: where the latest frame's unidentified markers were carried
 
     def code_view(self, view: int, blobs: Blobs) -> tuple[RingCoding, bool]:
         """One view's coding (``view`` 0 = left, 1 = right) and whether it was read from the rest pattern.
@@ -179,8 +184,13 @@ class DTRCTracker:
         prev = self._previous[view] if self.temporal and self._previous is not None else None
         hist = None
         if prev is not None:
+            # the previous frame again, with where its lost markers were carried (only those may be
+            # re-acquired from it), then the frames before it
+            (xy, ids), (vxy, vids) = prev, self._lost[view]
+            hist = [(np.vstack([xy, vxy]), np.concatenate([ids, vids]),
+                     np.r_[np.zeros(len(ids), bool), np.ones(len(vids), bool)])]
             prev = (*prev, *self._before[view])
-            hist = [frame[view] for frame in [self._before, *self._older]]
+            hist += [frame[view] for frame in [self._before, *self._older]]
         coding = code_rings(blobs, self.design, previous=prev, history=hist)
         if prev is None and self.rest is not None:
             again = read_from_rest(blobs, self.design, coding, self.rest[view])
@@ -196,7 +206,13 @@ class DTRCTracker:
         if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
             self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
         self._before = self._previous if self._previous is not None else [(np.empty((0, 2)), np.empty(0, np.int64))] * 2
-        self._previous = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
+        certified = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
+        if self.temporal:
+            lat = lattice_of(self.design)
+            was = [(np.vstack([p[0], q[0]]), np.concatenate([p[1], q[1]])) for p, q in zip(self._previous, self._lost)] \
+                if self._previous is not None else [_NONE] * 2
+            self._lost = [carry_lost(w, c, lat.xy, lat.nbr) for w, c in zip(was, certified)]
+        self._previous = certified
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
@@ -214,6 +230,7 @@ class DTRCTracker:
 
     def reset(self) -> None:
         self.last_codings = None
+        self._lost = [_NONE] * 2
         self._previous = None
         self._before = None
         self._older = []

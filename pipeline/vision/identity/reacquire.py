@@ -17,7 +17,7 @@ from pipeline.vision.identity.temporal import (F2F_GATE, F2F_GATE_ALONE, F2F_MAR
                                                F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods, _nn_dist,
                                                _predict)
 
-__all__ = ["REACQUIRE_FRAMES", "reacquire"]
+__all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
 
 
 #: Earlier frames a marker lost from the previous frame may be re-acquired from: its last certified
@@ -40,7 +40,8 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     free blobs of the current frame (blobs without an id in ``ids`` (n,)); -1 elsewhere.
 
     ``history``: the certified markers (xy_px (M, 2), ids (M,)) of the frames before the previous one,
-    most recent first (:data:`REACQUIRE_FRAMES` are used). A marker certified in one of them but in
+    most recent first (:data:`REACQUIRE_FRAMES` are used); an entry (xy_px, ids, lost (M,) bool) also holds
+    markers not certified there, carried by :func:`carry_lost`, and only those are re-acquired from it. A marker certified in one of them but in
     none since (nor now) is predicted from its last certified position moved by the affine map of its
     neighbours' motion from that frame to now (neighbours certified in both, the marker excluded),
     under the tests of :func:`frame_to_frame` unchanged: at least :data:`F2F_MIN_FIT` neighbours
@@ -64,13 +65,15 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     blob_of[ids[have]] = np.flatnonzero(have)
     seen = np.zeros(top, bool)                # certified in a more recent frame: not lost from this one
     seen[ids[have]] = True
-    for xy, hid in history[:REACQUIRE_FRAMES]:
-        hid = np.asarray(hid, np.int64)
+    for entry in history[:REACQUIRE_FRAMES]:
+        xy, hid = entry[0], np.asarray(entry[1], np.int64)
+        # a carried estimate that re-acquires nothing leaves the marker to its last certified position
+        sure = np.ones(len(hid), bool) if len(entry) < 3 else ~np.asarray(entry[2], bool)
         if len(hid) < F2F_MIN_FIT + 1:
-            seen[hid] = True
+            seen[hid[sure]] = True
             continue
         P = np.ascontiguousarray(xy, dtype=np.float64)
-        lost = ~seen[hid]
+        lost = ~seen[hid] & ~sure if len(entry) > 2 else ~seen[hid]
         while lost.any():
             cur = np.where(out >= 0, out, ids)
             blob_of[:] = -1
@@ -110,7 +113,7 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                 break
             out[got[hit]] = hid[hit]
             lost &= ~hit
-        seen[hid] = True
+        seen[hid[sure]] = True
     return out
 
 
@@ -133,3 +136,53 @@ def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
         return out
     # mutual against the re-acquired predictions, the identified blobs and the rivals
     return _assign_mutual(out, idx, j1, d1, s, np.vstack([pred[idx], pts[taken], rivals]), pts)
+
+
+def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the markers not certified in the current frame are, estimated, so that the next frame may
+    re-acquire them from one frame's motion rather than from their last certified position several frames
+    back (or never, for a marker whose blob was missing from the sequence's first frame): (xy_px (L, 2),
+    ids (L,)).
+
+    ``prev`` (xy_px, ids): the previous frame's certified markers and its carried estimates; ``cur``
+    (xy_px, ids): this frame's certified markers. A marker with a previous position is moved by the affine
+    map of its neighbours' motion, under the frame-to-frame fit's tests (neighbours certified in both
+    frames; at least :data:`F2F_MIN_FIT`, spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL`
+    local spacings); one without is placed by the affine map from the design to this frame
+    fitted to its certified immediate design neighbours (at least :data:`F2F_MIN_FIT`, spread in two directions, each
+    within :data:`F2F_FIT_RESIDUAL` local spacings of the fit). An estimate is never an id: re-acquisition
+    from it passes every frame-to-frame test on a free blob (:func:`reacquire`)."""
+    from pipeline.vision.identity.temporal import F2F_FIT_RESIDUAL
+
+    cur_xy, cur_ids = np.asarray(cur[0], np.float64).reshape(-1, 2), np.asarray(cur[1], np.int64)
+    prev_xy, prev_ids = np.asarray(prev[0], np.float64).reshape(-1, 2), np.asarray(prev[1], np.int64)
+    n_slots = len(design_xy)
+    at = np.full((n_slots, 2), np.nan)
+    if len(cur_ids) < F2F_MIN_FIT + 1:
+        return np.empty((0, 2)), np.empty(0, np.int64)
+    certified = np.zeros(n_slots, bool)
+    certified[cur_ids] = True
+    if len(prev_ids) > F2F_MIN_FIT:
+        row = np.full(n_slots, -1, np.int64)
+        row[cur_ids] = np.arange(len(cur_ids))
+        corr = row[prev_ids]
+        pred, ok, _, _, _, _ = _fit_frame(np.ascontiguousarray(prev_xy), corr, np.ascontiguousarray(cur_xy))
+        moved = ok & (corr < 0)
+        at[prev_ids[moved]] = pred[moved]
+    pos = np.full((n_slots, 2), np.nan)
+    pos[cur_ids] = cur_xy
+    s_cur = _nn_dist(cKDTree(cur_xy), cur_xy)
+    spacing = float(np.median(s_cur))
+    for i in np.flatnonzero(~certified & ~np.isfinite(at[:, 0])):
+        nb = design_nbr[i][design_nbr[i] >= 0]
+        nb = nb[certified[nb]]
+        if len(nb) < F2F_MIN_FIT:          # three fix an affine map; the fourth tests it
+            continue
+        D = np.c_[design_xy[nb] - design_xy[i], np.ones(len(nb))]
+        if np.linalg.matrix_rank(D[:, :2], tol=1e-6 * float(np.abs(D[:, :2]).max())) < 2:
+            continue
+        M = np.linalg.lstsq(D, pos[nb], rcond=None)[0]
+        if np.hypot(*(D @ M - pos[nb]).T).max() <= F2F_FIT_RESIDUAL * spacing:
+            at[i] = M[2]                       # the design offset of the slot itself is zero
+    lost = np.flatnonzero(np.isfinite(at[:, 0]) & ~certified)
+    return at[lost], lost

@@ -60,6 +60,10 @@ F2F_GATE = 0.2
 #: neighbour, whose centre lies between the two: its gate is this tighter one (the detector's noise
 #: and a press's increment over two spacings leave ~0.03 spacings).
 F2F_GATE_ALONE = 0.1
+#: ... unless each such neighbour has a blob of its own within this many local spacings of where the
+#: marker's neighbourhood puts it (:func:`_apart`): a neighbour whose blob was missing from the previous
+#: frame (glare, a worn marker, a spurious blob beside it) and is back cannot share the marker's blob.
+F2F_APART = 0.3
 #: The correspondences start from markers that moved less than this fraction of the local spacing
 #: (nearest blob to the previous position). It is what the certification rests on: a frame that
 #: moved by more than 1 - F2F_BOOTSTRAP spacings between frames would be followed to the neighbours'
@@ -295,14 +299,16 @@ def _assign_mutual(out: np.ndarray, idx: np.ndarray, j1: np.ndarray, d1: np.ndar
 
 
 def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, expected: np.ndarray | None = None,
-                   design_nbr: np.ndarray | None = None) -> np.ndarray:
+                   design_nbr: np.ndarray | None = None, design_xy: np.ndarray | None = None) -> np.ndarray:
     """Ids of the previous frame's certified markers (``prev_xy`` (M, 2) px, ``prev_ids`` (M,)) that the
     frame-to-frame map certifies on the current blobs ``pts`` (n, 2); -1 elsewhere (see the module
     notes). The previous ids are taken as right: what this certifies is only which blob each became.
     ``expected`` (M, 2): where each marker is expected now (its previous position moved on at its
     last frame's velocity; NaN where unknown), for the start only; default its previous position.
     ``design_nbr`` (slots, K): each design slot's immediate design neighbours (-1 padded); a marker
-    with one of them missing from ``prev_ids`` gets the gate :data:`F2F_GATE_ALONE`."""
+    with one of them missing from ``prev_ids`` gets the gate :data:`F2F_GATE_ALONE`, unless (with
+    ``design_xy`` (slots, 2), the design's x-y) each such neighbour has a blob of its own now
+    (:func:`_apart`)."""
     n, m = len(pts), len(prev_ids)
     out = np.full(n, -1, np.int64)
     if n < F2F_MIN_FIT + 1 or m < F2F_MIN_FIT + 1:
@@ -314,18 +320,25 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     nb, near, shell, s_prev = _neighbourhoods(P)
 
     gate = np.full(m, F2F_GATE)
+    alone = np.zeros(m, bool)
     if design_nbr is not None and len(design_nbr):
         known = np.zeros(len(design_nbr) + 1, bool)          # index -1 (padding) stays "known"
         known[prev_ids] = True
         known[-1] = True
-        gate[~known[design_nbr[prev_ids]].all(axis=1)] = F2F_GATE_ALONE
+        alone = ~known[design_nbr[prev_ids]].all(axis=1)
+        gate[alone] = F2F_GATE_ALONE
+    apart = alone if design_xy is not None else np.zeros(m, bool)
 
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
     corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
     moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok, _ = _fit(P, pts, nb, near, shell, corr, s_prev, P)
+        pred, ok, jac = _fit(P, pts, nb, near, shell, corr, s_prev, P)
+        g = gate
+        if apart.any():
+            g = gate.copy()
+            g[_apart(P, prev_ids, pred, jac, ok & apart, known, design_nbr, design_xy, tree, s_prev)] = F2F_GATE
         if moving is not None and moving.any():
             # where the increment itself is not affine over the neighbourhood (pins crowding into
             # the crests faster frame by frame), its change from the last frame's still is: the
@@ -337,10 +350,40 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
             ok = ok | okv
         # where the skin crowds in this very frame, the predictions crowd with it
         s_pred = np.minimum(s_prev, _nn_dist(cKDTree(pred), pred))
-        new = _accept(pred, ok, tree, pts, s_cur, s_pred, gate)
+        new = _accept(pred, ok, tree, pts, s_cur, s_pred, g)
         if np.array_equal(new, corr):
             break
         corr = new
     hit = corr >= 0
     out[corr[hit]] = prev_ids[hit]
+    return out
+
+
+def _apart(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, tree, s_prev) -> np.ndarray:
+    """Markers (of ``which``) whose immediate design neighbours missing from the previous frame each have a
+    blob of their own now, so that none of them can have merged with the marker into one blob (the case
+    :data:`F2F_GATE_ALONE` guards): the neighbour's previous position is put where the design-to-image map
+    of the marker's known neighbours (a linear map of design offsets, fitted to at least two, spread in two
+    directions) places it beside the marker, moved on by the marker's frame-to-frame map (Jacobian
+    ``jac``); its nearest blob now must be another than the marker's predicted one and within
+    :data:`F2F_APART` local spacings of that place. A neighbour without such a blob (missing now too, or
+    crowded onto the marker) leaves the marker at the tight gate."""
+    out = np.zeros(len(P), bool)
+    row = np.full(len(known), -1, np.int64)
+    row[prev_ids] = np.arange(len(prev_ids))
+    for i in np.flatnonzero(which):
+        me = prev_ids[i]
+        nbrs = design_nbr[me][design_nbr[me] >= 0]
+        have, missing = nbrs[known[nbrs]], nbrs[~known[nbrs]]
+        if len(have) < 2 or len(missing) == 0:
+            continue
+        dD = design_xy[have] - design_xy[me]
+        if np.linalg.matrix_rank(dD, tol=1e-6 * float(np.abs(dD).max())) < 2:
+            continue
+        A = np.linalg.lstsq(dD, P[row[have]] - P[i], rcond=None)[0]        # design offset -> previous image
+        J = jac[i].reshape(2, 2)
+        q = pred[i] + ((design_xy[missing] - design_xy[me]) @ A) @ J.T        # the neighbours now
+        d, j = tree.query(q)
+        own = tree.query(pred[i])[1]
+        out[i] = bool(np.all((j != own) & (d <= F2F_APART * s_prev[i])))
     return out
