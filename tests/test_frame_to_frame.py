@@ -271,6 +271,25 @@ def test_a_reacquired_marker_never_takes_a_wrong_blob():
     assert m in out and np.all((out < 0) | (out == ids[ids != n]))
 
 
+def test_a_lost_marker_beside_a_lost_neighbour_with_its_own_blob_is_reacquired_at_the_usual_gate():
+    """The lost marker's blob 0.15 separations off its prediction, towards a neighbour lost with it (not
+    certified now, its own blob 0.25 separations beyond its predicted place, so that it is not taken back
+    itself): the neighbour's blob stands apart, the two cannot be one merged blob, and the marker is taken
+    back; with the neighbour's blob gone, the tight gate holds and it is not."""
+    design, prev, cur, ids, now = _lost_marker_step()
+    nbr = lattice_of(design).nbr
+    m, n = 50, int(nbr[50][0])
+    pts = cur.copy()
+    pts[m] += 0.15 * (cur[n] - cur[m])
+    pts[n] += 0.25 * (cur[n] - cur[m])
+    cur_ids = np.where(ids == n, -1, now)
+    out = reacquire([(prev, ids)], cur_ids, pts, nbr)
+    assert out[m] == m and out[n] < 0 and np.all((out < 0) | (out == ids))
+    keep = ids != n
+    out = reacquire([(prev, ids)], cur_ids[keep], pts[keep], nbr)
+    assert m not in out and np.all((out < 0) | (out == ids[keep]))
+
+
 def test_a_press_sequence_reacquires_a_marker_whose_blob_was_missing_for_a_frame():
     """The crowding press of 11 frames (one frame alone identifies nothing at the deepest poses) with
     the blob of a marker in the most crowded column missing from both views in frame 7: the marker is

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.vision.identity.temporal import (F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT, F2F_RATIO,
+from pipeline.vision.identity.temporal import (F2F_APART, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT, F2F_RATIO,
                                                F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods, _nn_dist,
                                                _predict)
 
@@ -48,7 +48,8 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL` local spacings (the first shell
     alone where the whole neighbourhood is refused); the nearest
     blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design neighbour is not
-    certified now, so that it may share the blob) of the prediction, :data:`F2F_RATIO` times and
+    certified now, so that it may share the blob, unless each such neighbour has a blob of its own within
+    :data:`F2F_APART` local spacings of its predicted place, another than the marker's) of the prediction, :data:`F2F_RATIO` times and
     :data:`F2F_MARGIN` spacings nearer than the second-nearest blob (identified or not); and mutual: no
     other re-acquired prediction and no identified blob nearly as near to that blob. The blob must
     be free: a blob that carries another marker's id is never taken, even when it is the nearest."""
@@ -97,6 +98,7 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                 row = np.full(len(known), -1, np.int64)
                 row[hid] = np.arange(len(hid))
                 for i in np.flatnonzero(ok):
+                    apart, own = True, tree.query(pred[i])[1]
                     for n in design_nbr[hid[i]]:
                         if n < 0 or known[n]:
                             continue
@@ -104,8 +106,14 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                         if r < 0:
                             ok[i] = False
                             break
+                        q = rough[r] if rough_ok[r] else pred[i] + jac[i].reshape(2, 2) @ (P[r] - P[i])
                         if not rough_ok[r]:
-                            rivals.append((pred[i] + jac[i].reshape(2, 2) @ (P[r] - P[i]))[None])
+                            rivals.append(q[None])
+                        # a neighbour with a blob of its own, apart from the marker's, cannot share it
+                        d, j = tree.query(q)
+                        apart &= bool(j != own and d <= F2F_APART * s_prev[i])
+                    if ok[i] and apart:
+                        gate[i] = F2F_GATE
             rivals = np.vstack(rivals)
             got = _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, cur >= 0, rivals)
             hit = got >= 0
