@@ -122,7 +122,8 @@ def press_all(ctx, out, designs) -> dict[str, list[dict]]:
     out.metric("twin_sequence_frames_invalid", sum(o.result["frames"] - len(o.result["xyz"]) for o in outcomes
                                                    if o.ok), "1")
     if cut:
-        out.notes.append("twin_sequence: physically invalid frames end their sequence (left out): " + "; ".join(cut) + ".")
+        out.notes.append("twin_sequence: physically invalid frames end their sequence (left out): "
+                         + "; ".join(cut) + ".")
     if failed:
         out.notes.append("twin_sequence: presses that raised, left out: " + "; ".join(failed) + ".")
     return seqs if all(seqs.values()) else {}

@@ -209,8 +209,8 @@ class DTRCTracker:
         certified = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         if self.temporal:
             lat = lattice_of(self.design)
-            was = [(np.vstack([p[0], q[0]]), np.concatenate([p[1], q[1]])) for p, q in zip(self._previous, self._lost)] \
-                if self._previous is not None else [_NONE] * 2
+            was = ([(np.vstack([p[0], q[0]]), np.concatenate([p[1], q[1]])) for p, q in zip(self._previous, self._lost)]
+                   if self._previous is not None else [_NONE] * 2)
             self._lost = [carry_lost(w, c, lat.xy, lat.nbr) for w, c in zip(was, certified)]
         self._previous = certified
         return _pair(left, right, lc, rc, _marker_count(self.design))

@@ -1,11 +1,14 @@
 """Re-acquisition: a marker lost before the previous frame is taken back by the frame-to-frame map.
 
 A marker the detector merged with a crowded neighbour, or whose neighbourhood the frame-to-frame map
-(:mod:`pipeline.vision.identity.temporal`) could not fit, for a frame or two, has no certified position in
-the previous frame to be followed from. :func:`reacquire` predicts it from its last certified position in
-an earlier frame, moved by its neighbours' motion from that frame to now, under the frame-to-frame tests
-unchanged, and gives it only a blob that carries no id; its uncertified design neighbours are tested as
-rivals, so a blob of two merged pins goes to neither.
+(:mod:`pipeline.vision.identity.temporal`) could not fit, or whose blob glare or a spurious blob beside it
+took, for a frame or two, has no certified position in the previous frame to be followed from.
+:func:`reacquire` predicts it from its last certified position in an earlier frame, moved by its
+neighbours' motion from that frame to now, under the frame-to-frame tests unchanged, and gives it only a
+blob that carries no id; its uncertified design neighbours are tested as
+rivals, so a blob of two merged pins goes to neither. :func:`carry_lost` keeps, frame by frame, a place for
+every marker not identified, so that it is predicted from one frame's motion (also a marker whose blob was
+missing from the sequence's first frame, which has no certified position at all).
 """
 
 from __future__ import annotations
@@ -13,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.vision.identity.temporal import (F2F_APART, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT, F2F_RATIO,
-                                               F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods, _nn_dist,
-                                               _predict)
+from pipeline.vision.identity.temporal import (F2F_APART, F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN,
+                                               F2F_MIN_FIT, F2F_RATIO, F2F_SPREAD, _assign_mutual, _fit,
+                                               _neighbourhoods, _nn_dist, _predict)
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
 
@@ -40,19 +43,21 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     free blobs of the current frame (blobs without an id in ``ids`` (n,)); -1 elsewhere.
 
     ``history``: the certified markers (xy_px (M, 2), ids (M,)) of the frames before the previous one,
-    most recent first (:data:`REACQUIRE_FRAMES` are used); an entry (xy_px, ids, lost (M,) bool) also holds
-    markers not certified there, carried by :func:`carry_lost`, and only those are re-acquired from it. A marker certified in one of them but in
-    none since (nor now) is predicted from its last certified position moved by the affine map of its
-    neighbours' motion from that frame to now (neighbours certified in both, the marker excluded),
-    under the tests of :func:`frame_to_frame` unchanged: at least :data:`F2F_MIN_FIT` neighbours
-    spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL` local spacings (the first shell
-    alone where the whole neighbourhood is refused); the nearest
-    blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design neighbour is not
-    certified now, so that it may share the blob, unless each such neighbour has a blob of its own within
-    :data:`F2F_APART` local spacings of its predicted place, another than the marker's) of the prediction, :data:`F2F_RATIO` times and
-    :data:`F2F_MARGIN` spacings nearer than the second-nearest blob (identified or not); and mutual: no
-    other re-acquired prediction and no identified blob nearly as near to that blob. The blob must
-    be free: a blob that carries another marker's id is never taken, even when it is the nearest."""
+    most recent first (:data:`REACQUIRE_FRAMES` are used); an entry (xy_px, ids, lost (M,) bool) also
+    holds markers not certified there, carried by :func:`carry_lost`, and only those are re-acquired
+    from it (one that is not is still tried from its last certified position in an older entry). A
+    marker certified in one of them but in none since (nor now) is predicted from its last certified
+    position moved by the affine map of its neighbours' motion from that frame to now (neighbours
+    certified in both, the marker excluded), under the tests of :func:`frame_to_frame` unchanged: at
+    least :data:`F2F_MIN_FIT` neighbours spread in two directions, each fitted to
+    :data:`F2F_FIT_RESIDUAL` local spacings (the first shell alone where the whole neighbourhood is
+    refused); the nearest blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design
+    neighbour is not certified now, so that it may share the blob, unless each such neighbour has a blob
+    of its own, another than the marker's, within :data:`F2F_APART` local spacings of its predicted
+    place) of the prediction, :data:`F2F_RATIO` times and :data:`F2F_MARGIN` spacings nearer than the
+    second-nearest blob (identified or not); and mutual: no other re-acquired prediction and no
+    identified blob nearly as near to that blob. The blob must be free: a blob that carries another
+    marker's id is never taken, even when it is the nearest."""
     n = len(pts)
     out = np.full(n, -1, np.int64)
     have = ids >= 0
@@ -156,12 +161,10 @@ def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.nd
     (xy_px, ids): this frame's certified markers. A marker with a previous position is moved by the affine
     map of its neighbours' motion, under the frame-to-frame fit's tests (neighbours certified in both
     frames; at least :data:`F2F_MIN_FIT`, spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL`
-    local spacings); one without is placed by the affine map from the design to this frame
-    fitted to its certified immediate design neighbours (at least :data:`F2F_MIN_FIT`, spread in two directions, each
-    within :data:`F2F_FIT_RESIDUAL` local spacings of the fit). An estimate is never an id: re-acquisition
+    local spacings); one without is placed by the affine map from the design to this frame fitted to
+    its certified immediate design neighbours (at least :data:`F2F_MIN_FIT`, spread in two directions,
+    each within :data:`F2F_FIT_RESIDUAL` median spacings of the fit). An estimate is never an id: re-acquisition
     from it passes every frame-to-frame test on a free blob (:func:`reacquire`)."""
-    from pipeline.vision.identity.temporal import F2F_FIT_RESIDUAL
-
     cur_xy, cur_ids = np.asarray(cur[0], np.float64).reshape(-1, 2), np.asarray(cur[1], np.int64)
     prev_xy, prev_ids = np.asarray(prev[0], np.float64).reshape(-1, 2), np.asarray(prev[1], np.int64)
     n_slots = len(design_xy)
