@@ -76,3 +76,37 @@ def test_identify_on_detected_blobs_gives_what_process_gives_on_the_frames():
         np.testing.assert_array_equal(m.ids, got.ids)
         np.testing.assert_allclose(m.left_px, got.left_px)
         assert len(m.ids) == design.marker_count
+
+
+def test_the_presses_run_through_the_executor_and_a_pattern_without_a_valid_frame_leaves_the_condition_out(
+        monkeypatch, tmp_path):
+    """``press_all`` runs every (design, press) cell on the context's engine and keeps the sequences with a valid
+    frame, with a note for each cut; when one pattern has none the condition is left out with a note (its
+    trials would have nothing to read), and a press that raised is named."""
+    from benchmarks.executor import InlineEngine
+    from benchmarks.registry import Context, Result
+
+    designs = [load_design("hexagon61_sep354"), load_design("hexagon127")]
+    xyz = [np.zeros((3, 3))]
+
+    def fake(design, kind, value):
+        if kind == "sine" and design.name == "hexagon127":
+            raise RuntimeError("solver failed")
+        if kind == "sine":
+            return {"xyz": [], "frames": 5, "invalid_from": 1}
+        return {"xyz": xyz * 2, "frames": 5, "invalid_from": 3}
+
+    monkeypatch.setattr(twin_cond, "press_sequence", fake)
+    ctx = Context(out_dir=tmp_path, progress=False, engine=InlineEngine(),
+                  params={"twin_presses": [["gaussian", 10.0], ["sine", 1.0]]})
+    out = Result(designs=designs)
+    seqs = twin_cond.press_all(ctx, out, designs)
+    assert {k: [s["press"] for s in v] for k, v in seqs.items()} == {"hexagon61_sep354": ["gaussian σ²=10"],
+                                                                      "hexagon127": ["gaussian σ²=10"]}
+    assert out.metrics["twin_sequence_frames_invalid"][0] == 3 + 3 + 5
+    assert any("solver failed" in n for n in out.notes) and any("from frame 3" in n for n in out.notes)
+    ctx = Context(out_dir=tmp_path, progress=False, engine=InlineEngine(), params={"twin_presses": [["sine", 1.0]]})
+    out = Result(designs=designs)
+    assert twin_cond.press_all(ctx, out, designs) == {}
+    assert any(n.startswith("twin_sequence left out: no physically valid pressed frame for hexagon61_sep354")
+               for n in out.notes)

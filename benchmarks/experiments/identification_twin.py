@@ -126,7 +126,11 @@ def press_all(ctx, out, designs) -> dict[str, list[dict]]:
                          + "; ".join(cut) + ".")
     if failed:
         out.notes.append("twin_sequence: presses that raised, left out: " + "; ".join(failed) + ".")
-    return seqs if all(seqs.values()) else {}
+    empty = [name for name, runs in seqs.items() if not runs]
+    if empty:
+        out.notes.append("twin_sequence left out: no physically valid pressed frame for " + ", ".join(empty) + ".")
+        return {}
+    return seqs
 
 
 def read_trials(design, calib, seqs: list[dict], rng: np.random.Generator, n_trials: int, bar=None) -> list[dict]:
