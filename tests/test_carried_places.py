@@ -6,12 +6,9 @@ tight gate. The crowding press and the lattice step are those of tests/test_fram
 import numpy as np
 import pytest
 
-from pipeline.design import load_design
-from pipeline.vision.dtrc import DTRCTracker
 from pipeline.vision.identity import lattice_of
 from pipeline.vision.identity.reacquire import reacquire
-from benchmarks.experiments.identification import view_px
-from test_frame_to_frame import _blobs, _crowding, _lost_marker_step
+from test_frame_to_frame import _lost_marker_step, crowding_with_a_missing_marker
 
 
 @pytest.mark.parametrize("name, marker, gone", [("circular217_dome", 120, 5), ("circular217_dome", 120, 7)])
@@ -24,27 +21,10 @@ def test_a_marker_missing_from_the_first_frames_is_identified_once_its_blob_is_b
     pattern, leave it unmatched to the end. (On hexagon127 the rule's fans read it back either way.)"""
     import pipeline.vision.dtrc.tracking as tracking
 
-    def run():
-        design = load_design(name)
-        rng = np.random.default_rng(1)
-        rest = view_px(design, rng, rot_deg=float(rng.uniform(-10, 10)), jitter_sep=0.0)
-        at = _crowding(rest, rng, 0.65)
-        tracker, counts = DTRCTracker(design), []
-        for k, t in enumerate(np.linspace(0.0, 1.0, 11)):
-            keep = np.arange(len(rest)) != marker if k < gone else np.ones(len(rest), bool)
-            views = [at(t)[keep] - off + rng.normal(0, 0.2, (keep.sum(), 2)) for off in ([0.0, 0.0], [25.0, 0.0])]
-            m = tracker.update(_blobs(views[0]), _blobs(views[1]))
-            truth = np.flatnonzero(keep)
-            for pts, px in zip(views, (m.left_px, m.right_px)):
-                look = {tuple(a): b for a, b in zip(pts.tolist(), truth.tolist())}
-                assert all(look[tuple(a)] == i for a, i in zip(px.tolist(), m.ids.tolist())), k
-            counts.append(len(m.ids))
-        return design.marker_count, counts
-
-    n, counts = run()
+    n, counts = crowding_with_a_missing_marker(name, marker, lambda k: k < gone)
     assert counts == [n - 1] * gone + [n] * (11 - gone)
     monkeypatch.setattr(tracking, "carry_lost", lambda *a: (np.empty((0, 2)), np.empty(0, np.int64)))
-    assert run()[1][-1] == n - 1
+    assert crowding_with_a_missing_marker(name, marker, lambda k: k < gone)[1][-1] == n - 1
 
 
 def test_a_lost_marker_beside_a_lost_neighbour_with_its_own_blob_is_reacquired_at_the_usual_gate():

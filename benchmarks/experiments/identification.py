@@ -69,7 +69,8 @@ BASE_JITTER_SEP = 0.02
 MERGE_SEP = 0.25        # closer to a marker than this, a blob is that marker (detection merges them)
 MISSING_CLEAR_SEP = 0.5  # closer to a missing marker's slot than this, a blob is that marker displaced
 
-__all__ = ["PATTERN_DESIGNS", "CONDITIONS", "view_px", "add_defects", "run_trial"]
+__all__ = ["PATTERN_DESIGNS", "CONDITIONS", "view_px", "add_defects", "stereo_views_with_defects", "score_pairs",
+           "run_trial"]
 
 
 def _key(name: str) -> str:
@@ -143,6 +144,29 @@ def add_defects(uv: np.ndarray, rng: np.random.Generator, *, missing: float = 0.
     return pts[perm], truth[perm], gone_ids
 
 
+def stereo_views_with_defects(views, rng: np.random.Generator, rate: float, noise_px: float = 0.2) -> list:
+    """Both views' marker projections (px) with ``noise_px`` centre noise and each view's own ``rate``
+    missing + ``rate`` spurious blobs (:func:`add_defects`, the separation the view's median nearest-neighbour
+    distance): [(pts, truth) left, (pts, truth) right]."""
+    sides = []
+    for uv in views:
+        uv = uv + rng.normal(0, noise_px, uv.shape)
+        nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+        sides.append(add_defects(uv, rng, missing=rate, spurious=rate, px_per_sep=float(np.median(nn)))[:2])
+    return sides
+
+
+def score_pairs(m, sides: list) -> dict:
+    """{"wrong", "correct", "present"} of the pairs ``m`` (MarkerMatches) against the views' truth ``sides``
+    (:func:`stereo_views_with_defects`): a pair is wrong if either view's blob is not that marker; present
+    counts the markers present in both views."""
+    owner = [{tuple(p): t for p, t in zip(pts.tolist(), truth.tolist())} for pts, truth in sides]
+    ok = np.array([owner[0][tuple(a)] == i and owner[1][tuple(b)] == i
+                   for i, a, b in zip(m.ids.tolist(), m.left_px.tolist(), m.right_px.tolist())], bool)
+    present = len(set(sides[0][1][sides[0][1] >= 0].tolist()) & set(sides[1][1][sides[1][1] >= 0].tolist()))
+    return {"wrong": int((~ok).sum()), "correct": int(ok.sum()), "present": present}
+
+
 def _blobs(pts):
     from pipeline.types import Blobs
 
@@ -175,20 +199,8 @@ def run_trial(design, condition: str, rng: np.random.Generator, calib=None) -> d
         c = rng.uniform(-0.3, 0.3, 2) * R
         xyz = gaussian_press_markers(design, rng.uniform(1.0, 5.0), sigma_mm=rng.uniform(3.0, 6.0),
                                      centre_xy_mm=(float(c[0]), float(c[1])), lateral=rng.uniform(0.0, 0.3))
-        views = project_through_stack(xyz, calib, design)
-        sides = []
-        for uv in views:
-            uv = uv + rng.normal(0, 0.2, uv.shape)
-            nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
-            pts, truth, _ = add_defects(uv, rng, missing=0.03, spurious=0.03, px_per_sep=float(np.median(nn)))
-            sides.append((pts, truth))
-        m = match_stereo(_blobs(sides[0][0]), _blobs(sides[1][0]), design)
-        tl = {tuple(p): t for p, t in zip(sides[0][0].tolist(), sides[0][1].tolist())}
-        tr = {tuple(p): t for p, t in zip(sides[1][0].tolist(), sides[1][1].tolist())}
-        ok = np.array([tl[tuple(a)] == i and tr[tuple(b)] == i
-                       for i, a, b in zip(m.ids.tolist(), m.left_px.tolist(), m.right_px.tolist())], bool)
-        present = len(set(sides[0][1][sides[0][1] >= 0].tolist()) & set(sides[1][1][sides[1][1] >= 0].tolist()))
-        return {"wrong": int((~ok).sum()), "correct": int(ok.sum()), "present": present}
+        sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, 0.03)
+        return score_pairs(match_stereo(_blobs(sides[0][0]), _blobs(sides[1][0]), design), sides)
     kw: dict = {}
     rot = None
     jitter = BASE_JITTER_SEP

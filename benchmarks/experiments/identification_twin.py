@@ -75,24 +75,15 @@ def read_sequence(design, calib, frames_xyz: list, rng: np.random.Generator, *,
                   rate: float = DEFECT_RATE) -> list[dict]:
     """Read one sequence (marker positions per frame) as the runner reads recorded frames; per frame
     {"wrong", "correct", "present"} (module notes)."""
-    from benchmarks.experiments.identification import _blobs, add_defects
+    from benchmarks.experiments.identification import _blobs, score_pairs, stereo_views_with_defects
     from pipeline.geometry.refraction import project_through_stack
     from pipeline.runner import Reconstructor
 
     rec = Reconstructor(design, calib, view_threads=1)
     out = []
     for xyz in frames_xyz:
-        sides = []
-        for uv in project_through_stack(xyz, calib, design):
-            uv = uv + rng.normal(0.0, NOISE_PX, uv.shape)
-            nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
-            sides.append(add_defects(uv, rng, missing=rate, spurious=rate, px_per_sep=float(np.median(nn)))[:2])
-        m = rec.identify(_blobs(sides[0][0]), _blobs(sides[1][0]))
-        owner = [{tuple(p): t for p, t in zip(pts.tolist(), truth.tolist())} for pts, truth in sides]
-        ok = np.array([owner[0][tuple(a)] == i and owner[1][tuple(b)] == i
-                       for i, a, b in zip(m.ids.tolist(), m.left_px.tolist(), m.right_px.tolist())], bool)
-        present = len(set(sides[0][1][sides[0][1] >= 0].tolist()) & set(sides[1][1][sides[1][1] >= 0].tolist()))
-        out.append({"wrong": int((~ok).sum()), "correct": int(ok.sum()), "present": present})
+        sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, rate, NOISE_PX)
+        out.append(score_pairs(rec.identify(_blobs(sides[0][0]), _blobs(sides[1][0])), sides))
     return out
 
 

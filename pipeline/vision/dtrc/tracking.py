@@ -205,7 +205,7 @@ class DTRCTracker:
         self.last_codings = (lc, rc)
         if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
             self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
-        self._before = self._previous if self._previous is not None else [(np.empty((0, 2)), np.empty(0, np.int64))] * 2
+        self._before = self._previous if self._previous is not None else [_NONE] * 2
         certified = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         if self.temporal:
             lat = lattice_of(self.design)

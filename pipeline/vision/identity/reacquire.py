@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.vision.identity.temporal import (F2F_APART, F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN,
-                                               F2F_MIN_FIT, F2F_RATIO, F2F_SPREAD, _assign_mutual, _fit,
-                                               _neighbourhoods, _nn_dist, _predict)
+from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT,
+                                               F2F_RATIO, F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods,
+                                               _nn_dist, _predict, stand_apart)
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
 
@@ -103,7 +103,7 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                 row = np.full(len(known), -1, np.int64)
                 row[hid] = np.arange(len(hid))
                 for i in np.flatnonzero(ok):
-                    apart, own = True, tree.query(pred[i])[1]
+                    places = []
                     for n in design_nbr[hid[i]]:
                         if n < 0 or known[n]:
                             continue
@@ -114,10 +114,9 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                         q = rough[r] if rough_ok[r] else pred[i] + jac[i].reshape(2, 2) @ (P[r] - P[i])
                         if not rough_ok[r]:
                             rivals.append(q[None])
-                        # a neighbour with a blob of its own, apart from the marker's, cannot share it
-                        d, j = tree.query(q)
-                        apart &= bool(j != own and d <= F2F_APART * s_prev[i])
-                    if ok[i] and apart:
+                        places.append(q)
+                    # neighbours with blobs of their own, apart from the marker's, cannot share it
+                    if ok[i] and stand_apart(tree, np.reshape(places, (-1, 2)), pred[i], s_prev[i]):
                         gate[i] = F2F_GATE
             rivals = np.vstack(rivals)
             got = _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, cur >= 0, rivals)

@@ -383,7 +383,13 @@ def _apart(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, tree, s_
         A = np.linalg.lstsq(dD, P[row[have]] - P[i], rcond=None)[0]        # design offset -> previous image
         J = jac[i].reshape(2, 2)
         q = pred[i] + ((design_xy[missing] - design_xy[me]) @ A) @ J.T        # the neighbours now
-        d, j = tree.query(q)
-        own = tree.query(pred[i])[1]
-        out[i] = bool(np.all((j != own) & (d <= F2F_APART * s_prev[i])))
+        out[i] = stand_apart(tree, q, pred[i], s_prev[i])
     return out
+
+
+def stand_apart(tree: cKDTree, places: np.ndarray, pred: np.ndarray, spacing: float) -> bool:
+    """Whether each of ``places`` (k, 2), where a marker's lost neighbours are put now, has a blob of its own
+    within :data:`F2F_APART` local spacings (``spacing``, px) that is not the marker's nearest blob to its
+    prediction ``pred`` (2,)."""
+    d, j = tree.query(places)
+    return bool(np.all((j != tree.query(pred)[1]) & (d <= F2F_APART * spacing)))
