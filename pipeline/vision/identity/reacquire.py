@@ -172,10 +172,12 @@ def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.nd
         return np.empty((0, 2)), np.empty(0, np.int64)
     certified = np.zeros(n_slots, bool)
     certified[cur_ids] = True
-    if len(prev_ids) > F2F_MIN_FIT:
-        row = np.full(n_slots, -1, np.int64)
-        row[cur_ids] = np.arange(len(cur_ids))
-        corr = row[prev_ids]
+    if certified.all():                        # nothing lost: the usual frame, no fit
+        return np.empty((0, 2)), np.empty(0, np.int64)
+    row = np.full(n_slots, -1, np.int64)
+    row[cur_ids] = np.arange(len(cur_ids))
+    corr = row[prev_ids]
+    if len(prev_ids) > F2F_MIN_FIT and (corr < 0).any():   # the fits only where a previous marker is lost now
         pred, ok, _, _, _, _ = _fit_frame(np.ascontiguousarray(prev_xy), corr, np.ascontiguousarray(cur_xy))
         moved = ok & (corr < 0)
         at[prev_ids[moved]] = pred[moved]
