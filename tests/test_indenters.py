@@ -44,6 +44,23 @@ def test_analytic_shapes():
     assert np.isnan(g.height(30.0, 0.0))             # off the part
 
 
+def test_a_sine_plate_with_a_relief_radius_rounds_off_beyond_it():
+    """Inside relief_radius_mm the plate is the sine; d mm beyond it, d^2 / (2 R) lower (a parabola of apex radius
+    R = roll_off_radius_mm, slope and height continuous at the relief's edge); the top is the sine's."""
+    w, r0, rho = 2 * math.pi / 15, 14.0, 1.5
+    s = make_indenter("sine", amplitude_mm=2.5, omega_rad_per_mm=w, relief_radius_mm=r0, roll_off_radius_mm=rho)
+    ang = np.linspace(0, 2 * math.pi, 13)
+    for r in (0.0, 5.0, 13.99, 14.5, 17.0, 20.0):
+        x, y = r * np.cos(ang), r * np.sin(ang)
+        drop = max(r - r0, 0.0) ** 2 / (2 * rho)
+        assert np.allclose(s.height(x, y), 2.5 * np.sin(w * x) - drop, atol=1e-12)
+    assert s.top_mm == pytest.approx(2.5, abs=1e-6)
+    # beyond the clamped rim of the built-in designs (20 mm) every crest has fallen 12 mm: the plate clears the mount
+    assert s.height(20.0, 0.0) <= 2.5 - 12.0 + 1e-9
+    with pytest.raises(IndenterError, match="roll_off_radius_mm"):
+        make_indenter("sine", relief_radius_mm=14.0, roll_off_radius_mm=0.0)
+
+
 def test_letter_o_has_a_hole_and_G_is_not_symmetric():
     o = make_indenter("letter", char="o")
     assert o.height(0.0, 0.0) == pytest.approx(0.0, abs=1e-6)           # counter of the "o"

@@ -163,8 +163,18 @@ def _gaussian(p):
 def _sine(p):
     a, w = p["amplitude_mm"], p["omega_rad_per_mm"]
     half = p["half_size_mm"]
+    r0, rho = p["relief_radius_mm"], p["roll_off_radius_mm"]
     xs = np.linspace(-half, half, 4001)
-    return (half, half), lambda x, y: a * np.sin(w * x) + 0.0 * y, float(np.max(a * np.sin(w * xs)))
+    top = float(np.max(a * np.sin(w * xs)))
+    if r0 <= 0:
+        return (half, half), lambda x, y: a * np.sin(w * x) + 0.0 * y, top
+
+    def h(x, y):
+        # the relief inside r0; beyond it the plate rounds off downward along a parabola of apex radius rho,
+        # whose curvature the face contact sees as that of a cap (twin.contact)
+        d = np.maximum(np.hypot(x, y) - r0, 0.0)
+        return a * np.sin(w * x) - d * d / (2.0 * rho)
+    return (half, half), h, top
 
 
 def _sphere(p):
@@ -228,7 +238,13 @@ _REGISTRY: dict[str, tuple[dict[str, Param], Callable]] = {
                  _gaussian),
     "sine": ({"amplitude_mm": Param("amplitude_mm", 2.5, float, 0.1, 10.0, doc="A in z = A sin(ωx)"),
               "omega_rad_per_mm": Param("omega_rad_per_mm", 2 * math.pi / 15, float, 0.01, 5.0, doc="ω"),
-              "half_size_mm": Param("half_size_mm", 25.0, float, 5.0, 60.0, doc="half width of the block")},
+              "half_size_mm": Param("half_size_mm", 25.0, float, 5.0, 60.0, doc="half width of the block"),
+              "relief_radius_mm": Param("relief_radius_mm", 0.0, float, 0.0, 60.0,
+                                        doc="radius of the sine relief; beyond it the plate rounds off downward "
+                                            "(0: the relief covers the whole block)"),
+              "roll_off_radius_mm": Param("roll_off_radius_mm", 2.0, float, 0.5, 100.0,
+                                          doc="apex radius of the parabola the plate rounds off along beyond "
+                                              "relief_radius_mm: the plate falls d^2 / (2 R) at d mm outside it")},
              _sine),
     "sphere": ({"radius_mm": Param("radius_mm", 10.0, float, 1.0, 19.0,
                                    doc="radius R of the spherical cap (contact mechanics checks: Hertz)")}, _sphere),

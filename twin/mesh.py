@@ -91,6 +91,10 @@ class MeshSpec:
                                   # default: as the twin's default (bench twin --quick) the σ² = 10, 5 mm press takes
                                   # 2.6 s instead of 1.9 s, the sharp tip on AXIS_CONTACT_MESH 14 s instead of 7.7 s,
                                   # and that mesh's apex ends 0.05 mm beyond the σ² = 10 tip instead of on it
+    sag_tol_mm: float | None = None   # face contact: how far a skin face may sag into a convex part of the indenter
+                                  # before spheres are placed there (twin.contact; None: its SAG_TOL_MM, 0.02 mm).
+                                  # The sines' crests crossing the cells obliquely (yaw 240) held faces 0.05-0.06 mm
+                                  # inside at 0.02 mm and 0.03-0.04 mm at 0.01 mm
     edge_drop_mm: float = 0.0     # > 0: the skin rounds down over its edge to a mount this far below its top (module
                                   # notes); 0: the mount is flush with the skin (the mesh is unchanged)
     edge_start_mm: float = 16.5   # radius where the rounded edge begins: beyond every hexagon pattern's marker cells

@@ -4,7 +4,7 @@ The other pressed condition (``press_stereo``) displaces the markers by an analy
 the markers where the twin's skin put them: each pattern design pressed 5 mm from rest in
 :data:`SEQUENCE_FRAMES` frames (1, 2, ... 5 mm) by the sharpest Gaussian of the paper's grid and its σ² = 10 mm²
 (:mod:`benchmarks.experiments.gaussian`'s axis contact mesh, the design's friction) and by the sines
-ω = 2π/15 and π/5 (:mod:`benchmarks.experiments.sine`'s face-contact mesh and friction), whose crests crowd the
+ω = 2π/15 and π/5 (:mod:`benchmarks.experiments.sine`'s plate, mesh and friction), whose crests crowd the
 markers. A frame the twin flags physically invalid ends its sequence there: a skin that passed through the
 indenter is not a skin the pipeline will see.
 
@@ -50,15 +50,14 @@ def press_sequence(design, kind: str, value: float) -> dict:
     "frames": how many were pressed, "invalid_from": the 1-based frame that ended it (0: none)}."""
     from benchmarks.experiments import gaussian, sine
     from twin.indenters import make_indenter
-    from twin.physics import AXIS_CONTACT_MESH, MeshSpec
+    from twin.physics import AXIS_CONTACT_MESH
     from twin.simulate import press_truth
 
     if kind == "gaussian":
         run = press_truth(design, make_indenter("gaussian", h_mm=gaussian.H_MM, sigma2_mm2=value), DEPTH_MM,
                           n_frames=SEQUENCE_FRAMES, mesh=AXIS_CONTACT_MESH)
     elif kind == "sine":
-        run = press_truth(design, make_indenter("sine", amplitude_mm=sine.AMPLITUDE_MM, omega_rad_per_mm=value),
-                          DEPTH_MM, n_frames=SEQUENCE_FRAMES, mesh=MeshSpec(face_contact=True),
+        run = press_truth(design, sine.sine_plate(value), DEPTH_MM, n_frames=SEQUENCE_FRAMES, mesh=sine.sine_mesh(),
                           friction=sine.SINE_FRICTION)
     else:
         raise ValueError(f"unknown indenter {kind!r}")

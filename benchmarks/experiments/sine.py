@@ -41,19 +41,27 @@ VALLEY_REACH_MM = AMPLITUDE_MM
 #: carried ids once pins crowd into the crests; 0.25 mm steps change nothing. Only hexagon127 at 2pi/15,
 #: yaw 120 keeps 125 of 127 to 5 mm (a single frame: 0). So the default stays a single frame.
 PRESS_FRAMES = 1
-#: The sines press frictionless, not with the designs' μ = 1. Measured with the 1e5 kg driven indenter on the 15
-#: presses of the full grid (hexagon127, ω × yaw, face contact, 5 mm): with μ = 1 none is valid (frictionless: 6).
-#: Inside r = 12 mm the frictional skin keeps out of the sine (π/15, π/5, 2π/5 at yaw 0: no vertex more than
-#: 0.001 mm inside); what fails is the free ring between the outermost markers and the clamped rim (r = 14-19 mm),
-#: where a sine wider than the module passes up to 5 mm below the flush mount. There, with friction, the skin ends
-#: 1.3-3.5 mm inside the sine (π/15 to 4π/15; frictionless at most 0.18 mm), and 2π/5 at every yaw and π/15 yaw
-#: 240 fold the skin mesh without settling (2π/5 yaw 0: a ring vertex 3.7 mm inside). A press takes 11-71 s of
-#: physics against 6.6-9.4 s frictionless.
-SINE_FRICTION = 0.0
-SINE_FRICTION_WHY = ("with μ = 1 none of the full grid's 15 presses is valid (frictionless: 6): the free skin "
-                     "between the outermost markers and the clamped rim, where the sine passes up to 5 mm below the "
-                     "flush mount, ends 1.3-3.5 mm inside it, and 2π/5 (every yaw) and π/15 yaw 240 fold the skin "
-                     "mesh; 11-71 s a press against 6.6-9.4 s frictionless.")
+#: The plate: the sine relief out to RELIEF_RADIUS_MM from the sensor axis, beyond every scored marker region (the
+#: patterns' radius less half a separation: 12.4-14.0 mm), then rounded off downward along a parabola of apex radius
+#: ROLL_OFF_RADIUS_MM (twin.indenters, ``relief_radius_mm``): 5.3 mm lower 4 mm out, so the crests pressed 5 mm
+#: clear the rigid mount. The paper gives neither the plates' footprint nor the mount's height; the skin is flush
+#: with its mount (radius 20 mm), and a plate wider than the module pressed 5 mm would pass 5 mm below the mount,
+#: where the real sensor would stall on it. Measured on the 15 presses of the full grid (hexagon127, ω × yaw, 5 mm,
+#: μ = 1): with a plate covering the module none was valid (frictionless 6 of 15): the crests pulled the free skin
+#: beside the mount down across one cell and cut it up to 3.5 mm deep; with this plate and mesh all 15 (at most
+#: 0.037 mm inside, the faces on the clamped rim included). Rounded off more gently (apex radius 2 mm) the plate
+#: still passed 0.3-0.45 mm below the mount and the last cells beside it lay 1.5 mm inside it; from 13 mm along a
+#: smoothstep (a 0.5 mm radius at its start) 10 of 15.
+RELIEF_RADIUS_MM = 14.0
+ROLL_OFF_RADIUS_MM = 1.5
+#: The mesh the sines press: face contact (the outer faces collide with spheres on the crests and flanks, which the
+#: 1.5 mm faces between vertex contacts otherwise cut by 0.08 mm (π/15) to 4.5 mm (2π/5)), 1.5 mm cells out to 18 mm,
+#: over the roll-off (beyond 9 mm the default mesh grows to 3.4 mm cells, whose faces chord through the roll-off),
+#: and spheres wherever a face would sag 0.01 mm into a crest (the default 0.02 mm held faces 0.05-0.06 mm inside
+#: crests crossing the cells obliquely, yaw 240).
+SINE_MESH_KW = {"face_contact": True, "fine_half_mm": 18.0, "sag_tol_mm": 0.01}
+#: The sines press with each design's friction (the built-in designs: μ = 1); None: the design's own.
+SINE_FRICTION: float | None = None
 #: A frame of the sequence counts as identified when this fraction of the markers is.
 IDENTIFIED_FRACTION = 0.95
 
@@ -131,7 +139,7 @@ def _grid(ctx: Context) -> _Grid:
 
 def _press_grid(ctx: Context, out: Result, grid: _Grid) -> list:
     """Press, reconstruct and score every cell (:func:`press_cell`) through the executor; [(row, surface grid)]."""
-    mu = friction_knob(ctx, out, default=SINE_FRICTION, why=SINE_FRICTION_WHY)
+    mu = friction_knob(ctx, out, default=SINE_FRICTION)
     jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", grid.setups[design.name], grid.n_press, mu)
             for design in grid.designs for k in grid.omega_idx for yaw in grid.yaws]
     return run_press_cells(ctx, out, press_cell, jobs, desc="sine", params=lambda j: (
@@ -285,6 +293,19 @@ def _plot(ctx: Context, cells: list, valid_rows: list[dict], grid: _Grid):
         return save_figure(fig, ctx.figure_path("sine"))
 
 
+def sine_plate(omega_rad_per_mm: float):
+    """The experiment's sine plate z = 2.5 sin(ωx) (:data:`RELIEF_RADIUS_MM`, :data:`ROLL_OFF_RADIUS_MM`)."""
+    return make_indenter("sine", amplitude_mm=AMPLITUDE_MM, omega_rad_per_mm=omega_rad_per_mm,
+                         relief_radius_mm=RELIEF_RADIUS_MM, roll_off_radius_mm=ROLL_OFF_RADIUS_MM)
+
+
+def sine_mesh():
+    """The mesh the sines press (:data:`SINE_MESH_KW`)."""
+    from twin.physics import MeshSpec
+
+    return MeshSpec(**SINE_MESH_KW)
+
+
 def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n_frames: int = PRESS_FRAMES,
                friction: float | None = SINE_FRICTION) -> tuple:
     """One cell of the grid: press the sine ω = OMEGAS[k] rotated by ``yaw`` into ``design`` from rest in
@@ -294,16 +315,12 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
     ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
     given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``. ``friction``: the
     Coulomb coefficient of the press (default :data:`SINE_FRICTION`), None for the design's own."""
-    from twin.physics import MeshSpec
     from twin.simulate import press
 
     rng, setup, radius = press_setup(design, setup, seed, stream)
     built, design, calib = setup.twin_design, setup.design, setup.calib
     w = OMEGAS[k]
-    ind = make_indenter("sine", amplitude_mm=AMPLITUDE_MM, omega_rad_per_mm=w)
-    # face contact: the outer faces collide with spheres on the sine's crests and flanks (twin.contact), which the
-    # 1.5 mm faces between vertex contacts otherwise cut by 0.08 mm (π/15) to 4.5 mm (2π/5)
-    run = press(built, ind, DEPTH_MM, n_frames=n_frames, yaw_deg=yaw, rng=rng, mesh=MeshSpec(face_contact=True),
+    run = press(built, sine_plate(w), DEPTH_MM, n_frames=n_frames, yaw_deg=yaw, rng=rng, mesh=sine_mesh(),
                 friction=friction)
     results = reconstruct(design, calib, [f for f, _ in run], **setup.reconstructor_kw())
     sep = design.pattern.separation_mm
