@@ -41,19 +41,21 @@ VALLEY_REACH_MM = AMPLITUDE_MM
 #: carried ids once pins crowd into the crests; 0.25 mm steps change nothing. Only hexagon127 at 2pi/15,
 #: yaw 120 keeps 125 of 127 to 5 mm (a single frame: 0). So the default stays a single frame.
 PRESS_FRAMES = 1
-#: The plate: the sine relief out to RELIEF_RADIUS_MM from the sensor axis, beyond every scored marker region (the
-#: patterns' radius less half a separation: 12.4-14.0 mm), then rounded off downward along a parabola of apex radius
-#: ROLL_OFF_RADIUS_MM (twin.indenters, ``relief_radius_mm``): 5.3 mm lower 4 mm out, so the crests pressed 5 mm
-#: clear the rigid mount. The paper gives neither the plates' footprint nor the mount's height; the skin is flush
-#: with its mount (radius 20 mm), and a plate wider than the module pressed 5 mm would pass 5 mm below the mount,
-#: where the real sensor would stall on it. Measured on the 15 presses of the full grid (hexagon127, ω × yaw, 5 mm,
-#: μ = 1): with a plate covering the module none was valid (frictionless 6 of 15): the crests pulled the free skin
-#: beside the mount down across one cell and cut it up to 3.5 mm deep; with this plate and mesh all 15 (at most
-#: 0.037 mm inside, the faces on the clamped rim included). Rounded off more gently (apex radius 2 mm) the plate
-#: still passed 0.3-0.45 mm below the mount and the last cells beside it lay 1.5 mm inside it; from 13 mm along a
-#: smoothstep (a 0.5 mm radius at its start) 10 of 15.
-RELIEF_RADIUS_MM = 14.0
-ROLL_OFF_RADIUS_MM = 1.5
+#: The plate: the sine relief out to RELIEF_RADIUS_MM from the sensor axis, then rounded off downward along a parabola
+#: of apex radius ROLL_OFF_RADIUS_MM (twin.indenters, ``relief_radius_mm``): 5.8 mm lower at 18.3 mm, where the
+#: clamped rim's staircase comes nearest, so the crests pressed 5 mm clear the rigid mount. The scored marker regions
+#: (the patterns' radius less half a separation: 12.4-14.0 mm) lie inside the relief, but for hexagon127's outermost
+#: 0.47 mm, where the plate is at most 0.055 mm lower (scored against that true surface). The paper gives neither the
+#: plates' footprint nor the mount's height; the skin is flush with its mount (radius 20 mm), and a plate wider than
+#: the module pressed 5 mm would pass 5 mm below the mount, where the real sensor would stall on it. Measured on the
+#: 15 presses of the full grid (hexagon127, ω × yaw, 5 mm, μ = 1): with a plate covering the module none was valid
+#: (frictionless 6 of 15): the crests pulled the free skin beside the mount down across one cell and cut it up to
+#: 3.5 mm deep; with this plate and mesh all 15 (at most 0.043 mm inside; 0.049 mm counting the faces on the clamped rim).
+#: From 14 mm, an apex radius of 2 mm left the plate 0.3-0.45 mm below the mount and faces on the rim 1.5 mm inside
+#: it; 1.5 and 1.75 mm cleared it but folded the skin under 2π/5 at yaw 120 (friction or not); a smoothstep from
+#: 13 mm (a 0.5 mm radius at its start) gave 10 of 15.
+RELIEF_RADIUS_MM = 13.5
+ROLL_OFF_RADIUS_MM = 2.0
 #: The mesh the sines press: face contact (the outer faces collide with spheres on the crests and flanks, which the
 #: 1.5 mm faces between vertex contacts otherwise cut by 0.08 mm (π/15) to 4.5 mm (2π/5)), 1.5 mm cells out to 18 mm,
 #: over the roll-off (beyond 9 mm the default mesh grows to 3.4 mm cells, whose faces chord through the roll-off),
