@@ -35,10 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the skin's outer faces also collide with spheres on the indenter's tips, crests and steep "
                         "flanks (keeps faces out of sharp indenters; on the 1.5 mm mesh vertices then stand off a "
                         "curved cap, see README 'Contact model')")
-    p.add_argument("--mesh", choices=("default", "axis"), default="default",
-                   help="skin mesh: 'default' (1.5 mm over the centre, vertex contact unless --face-contact) or 'axis' "
+    p.add_argument("--mesh", choices=("default", "axis", "sine"), default="default",
+                   help="skin mesh: 'default' (1.5 mm over the centre, vertex contact unless --face-contact), 'axis' "
                         "(0.5 mm cells within 3 mm of the sensor axis plus face contact: what the Gaussian experiment "
-                        "presses on; keeps Gaussians and spheres on the axis valid, ~10x slower)")
+                        "presses on; keeps Gaussians and spheres on the axis valid, ~10x slower) or 'sine' (1.5 mm "
+                        "cells out to 18 mm plus face contact: what the sine experiment presses on, with its plate "
+                        "--indenter sine --param relief_radius_mm=13.5 --param roll_off_radius_mm=2)")
     p.add_argument("--friction", type=float, default=None, metavar="MU",
                    help="Coulomb friction skin/indenter for this press (default: the indenter's --param friction=MU, "
                         "else the design's [twin] friction, 1.0 for the built-in "
@@ -104,9 +106,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     from twin.physics import MeshSpec
 
-    from twin.physics import AXIS_CONTACT_MESH
+    from twin.physics import AXIS_CONTACT_MESH, SINE_CONTACT_MESH
 
-    mesh = AXIS_CONTACT_MESH if args.mesh == "axis" else MeshSpec(face_contact=bool(args.face_contact))
+    mesh = {"axis": AXIS_CONTACT_MESH, "sine": SINE_CONTACT_MESH}.get(args.mesh,
+                                                                   MeshSpec(face_contact=bool(args.face_contact)))
     if args.motion == "press":
         run = simulate.press(design, indenter, args.depth, n_frames=args.steps, yaw_deg=args.yaw_deg, rng=rng,
                              progress=True, mesh=mesh, friction=args.friction)

@@ -56,12 +56,6 @@ PRESS_FRAMES = 1
 #: 13 mm (a 0.5 mm radius at its start) gave 10 of 15.
 RELIEF_RADIUS_MM = 13.5
 ROLL_OFF_RADIUS_MM = 2.0
-#: The mesh the sines press: face contact (the outer faces collide with spheres on the crests and flanks, which the
-#: 1.5 mm faces between vertex contacts otherwise cut by 0.08 mm (π/15) to 4.5 mm (2π/5)), 1.5 mm cells out to 18 mm,
-#: over the roll-off (beyond 9 mm the default mesh grows to 3.4 mm cells, whose faces chord through the roll-off),
-#: and spheres wherever a face would sag 0.01 mm into a crest (the default 0.02 mm held faces 0.05-0.06 mm inside
-#: crests crossing the cells obliquely, yaw 240).
-SINE_MESH_KW = {"face_contact": True, "fine_half_mm": 18.0, "sag_tol_mm": 0.01}
 #: The sines press with each design's friction (the built-in designs: μ = 1); None: the design's own.
 SINE_FRICTION: float | None = None
 #: A frame of the sequence counts as identified when this fraction of the markers is.
@@ -302,10 +296,11 @@ def sine_plate(omega_rad_per_mm: float):
 
 
 def sine_mesh():
-    """The mesh the sines press (:data:`SINE_MESH_KW`)."""
-    from twin.physics import MeshSpec
+    """The mesh the sines press: the twin's :data:`twin.physics.SINE_CONTACT_MESH` (face contact, 1.5 mm cells out to
+    18 mm, over the plate's roll-off; spheres wherever a face would sag 0.01 mm into a crest)."""
+    from twin.physics import SINE_CONTACT_MESH
 
-    return MeshSpec(**SINE_MESH_KW)
+    return SINE_CONTACT_MESH
 
 
 def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n_frames: int = PRESS_FRAMES,
