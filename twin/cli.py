@@ -104,9 +104,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return 0
     indenter = make_indenter(args.indenter, **parse_params(args.indenter, args.param))
     t0 = time.perf_counter()
-    from twin.physics import MeshSpec
-
-    from twin.physics import AXIS_CONTACT_MESH, SINE_CONTACT_MESH
+    from twin.physics import AXIS_CONTACT_MESH, SINE_CONTACT_MESH, MeshSpec
 
     mesh = {"axis": AXIS_CONTACT_MESH, "sine": SINE_CONTACT_MESH}.get(args.mesh,
                                                                    MeshSpec(face_contact=bool(args.face_contact)))

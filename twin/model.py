@@ -302,8 +302,8 @@ def _add_indenter(mjspec, indenter: Indenter, spec: MeshSpec, stick_candidates: 
     n_surface_spheres = 0
     if spec.face_contact:
         cell = spec.core_mm or spec.fine_mm
-        sag = {} if spec.sag_tol_mm is None else {"sag_tol_mm": float(spec.sag_tol_mm)}
-        centres, radii = contact.surface_spheres(indenter, skin_cell_mm=cell, with_radii=True, **sag)
+        sag = contact.SAG_TOL_MM if spec.sag_tol_mm is None else float(spec.sag_tol_mm)
+        centres, radii = contact.surface_spheres(indenter, skin_cell_mm=cell, with_radii=True, sag_tol_mm=sag)
         n_surface_spheres = int(len(centres))
         for c, r_s in zip(units.mm_to_m(centres), units.mm_to_m(radii)):
             gs = body.add_geom(type=mj.mjtGeom.mjGEOM_SPHERE, size=[float(r_s), 0, 0], pos=c.tolist())
