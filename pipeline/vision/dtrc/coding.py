@@ -73,7 +73,7 @@ class RingCoding:
 
 
 def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray, np.ndarray] | None = None,
-               history=None) -> RingCoding:
+               history=None, rest_before: bool = False) -> RingCoding:
     """DTRC ring coding of one view.
 
     Parameters
@@ -95,6 +95,12 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
         also markers that were not identified there, placed where their neighbours' motion carried
         them (:func:`pipeline.vision.identity.reacquire.carry_lost`): only those may be re-acquired
         from it. Used only with ``previous``.
+    rest_before : bool
+        ``previous``'s frame before is the rest pattern (where the calibration puts the unloaded
+        markers), not a frame of the sequence: the motion from it is only a guess at the markers'
+        velocity (a sequence may start pressed, a calibration is off by a pixel or two), so the
+        frame-to-frame map starts from the previous positions, and predicts a marker from the fit of
+        the motion's change only where that fit's worst residual is no larger than the increment's.
 
     Returns
     -------
@@ -180,7 +186,7 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
     if history is not None:
         history = [(np.asarray(h[0], np.float64).reshape(-1, 2), np.asarray(h[1], np.int64),
                     *([np.asarray(h[2], bool)] if len(h) > 2 else [])) for h in history]
-    ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous, history)
+    ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous, history, rest_before)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
                       tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched),

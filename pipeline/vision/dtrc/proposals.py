@@ -38,7 +38,7 @@ SPREAD_HYPOTHESES = 4_000
 
 
 def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, defects: bool,
-                 msgs: list[str], previous=None, history=None) -> tuple[np.ndarray, np.ndarray]:
+                 msgs: list[str], previous=None, history=None, rest_before: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The certainty rule (:mod:`pipeline.vision.identity`) applied to the ring-coding proposal and, when
     ``previous`` (the previous frame's certain markers: xy_px (M, 2), ids (M,)) is given and the
     proposal is not certified whole, to the ids carried from it (:func:`carry_ids`), each extended
@@ -49,7 +49,8 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     still unidentified are then followed from the previous frame
     (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are re-acquired from
     the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
-    Returns (certified id per blob, reason code per design id)."""
+    ``rest_before``: the frame before the previous one in ``previous`` is the rest pattern (see
+    :func:`~pipeline.vision.dtrc.coding.code_rings`). Returns (certified id per blob, reason code per design id)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)
     reason = np.full(n_slots, R_NO_BLOB, np.int64)
@@ -113,7 +114,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             msgs.append(f"withdrew {int(bad.sum())} id(s) that the previous frame's markers contradict")
     followed = None
     if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
-        ids, reason, followed = _with_frame_to_frame(previous, pts, ids, rule_ids, reason, lat, msgs)
+        ids, reason, followed = _with_frame_to_frame(previous, pts, ids, rule_ids, reason, lat, msgs, rest_before)
         if history and followed is None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
             back = reacquire(history, ids, pts, lat.nbr)
             if (back >= 0).any():
@@ -169,7 +170,7 @@ F2F_FEW_CONTRADICTIONS = 2
 
 
 def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, rule_ids: np.ndarray, reason: np.ndarray, lat,
-                         msgs: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+                         msgs: list[str], rest_before: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Add the markers the frame-to-frame map certifies (:func:`pipeline.vision.identity.frame_to_frame`)
     to the design-to-image ids ``ids``: where the pins crowd, the design-to-image map is not locally
     affine and the certainty rule withdraws correct ids, while one frame's increment is still small
@@ -189,7 +190,7 @@ def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, rule_ids: n
     whatever this frame's rule reads differently (a rule misled by crowding keeps disagreeing with
     the markers' continuous motion), instead of letting the rule's reading stand alone."""
     expected = expected_positions(*previous) if len(previous) == 4 else None
-    t = frame_to_frame(previous[0], previous[1], pts, expected, lat.nbr, lat.xy)
+    t = frame_to_frame(previous[0], previous[1], pts, expected, lat.nbr, lat.xy, start_at_previous=rest_before)
     ids, reason = ids.copy(), reason.copy()
     followed = None
     if (t >= 0).any():

@@ -156,6 +156,12 @@ class DTRCTracker:
     which refuse a marker farther from its neighbours' motion than a fifth of a spacing. The rest
     pattern thus fixes a reading by absolute position, which holds as long as the calibration puts
     the markers within a fraction of a separation of where they are (it has to for triangulation).
+    It also stands as the frame before the first one when the second is coded: the first frame's
+    motion from rest is the markers' velocity for the frame-to-frame fit of the motion's change
+    (``code_rings(rest_before=True)``). A press from rest bends the pattern's edge, held by the
+    clamped rim, away from what its inner neighbours' increment predicts (the twin's narrow sine at
+    1 -> 2 mm: an outer-ring pin 0.18 spacings off), while the increment's change from the first
+    frame's motion is still affine there.
     """
 
     def __init__(self, design: SensorDesign, *, temporal: bool = True,
@@ -174,6 +180,7 @@ class DTRCTracker:
         self._before: list | None = None
         self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
         self._lost: list = [_NONE] * 2  # per view: where the latest frame's unidentified markers were carried
+        self._frames = 0              # frames committed since the start (or the last reset)
 
     def code_view(self, view: int, blobs: Blobs) -> tuple[RingCoding, bool]:
         """One view's coding (``view`` 0 = left, 1 = right) and whether it was read from the rest pattern.
@@ -182,16 +189,17 @@ class DTRCTracker:
         the two views of a frame may be coded at once on two threads
         (:func:`pipeline.threads.both_views`)."""
         prev = self._previous[view] if self.temporal and self._previous is not None else None
-        hist = None
+        hist, rest_before = None, False
         if prev is not None:
             # the previous frame again, with where its lost markers were carried (only those may be
             # re-acquired from it), then the frames before it
             (xy, ids), (vxy, vids) = prev, self._lost[view]
             hist = [(np.vstack([xy, vxy]), np.concatenate([ids, vids]),
                      np.r_[np.zeros(len(ids), bool), np.ones(len(vids), bool)])]
-            prev = (*prev, *self._before[view])
+            rest_before = self._frames == 1 and self.rest is not None
+            prev = (*prev, *(self.rest[view] if rest_before else self._before[view]))
             hist += [frame[view] for frame in [self._before, *self._older]]
-        coding = code_rings(blobs, self.design, previous=prev, history=hist)
+        coding = code_rings(blobs, self.design, previous=prev, history=hist, rest_before=rest_before)
         if prev is None and self.rest is not None:
             again = read_from_rest(blobs, self.design, coding, self.rest[view])
             return again, again is not coding
@@ -213,6 +221,7 @@ class DTRCTracker:
                    if self._previous is not None else [_NONE] * 2)
             self._lost = [carry_lost(w, c, lat.xy, lat.nbr) for w, c in zip(was, certified)]
         self._previous = certified
+        self._frames += 1
         return _pair(left, right, lc, rc, _marker_count(self.design))
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
@@ -230,6 +239,7 @@ class DTRCTracker:
 
     def reset(self) -> None:
         self.last_codings = None
+        self._frames = 0
         self._lost = [_NONE] * 2
         self._previous = None
         self._before = None

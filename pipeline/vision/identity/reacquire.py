@@ -18,7 +18,8 @@ from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT,
                                                F2F_RATIO, F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods,
-                                               _nn_dist, _predict, stand_apart)
+                                               _nn_dist, _predict)
+from pipeline.vision.identity.apart import stand_apart
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
 
@@ -33,8 +34,8 @@ def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
     """The frame-to-frame fit's neighbour structure for markers at ``P`` (one earlier frame), and each
     one's current prediction from the neighbours that have a current blob ``corr`` (see :func:`_predict`)."""
     nb, near, shell, s_prev = _neighbourhoods(P)
-    pred, ok, jac = _fit(P, pts, nb, near, shell, corr, s_prev, P)
-    rough, rough_ok, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
+    pred, ok, jac, _ = _fit(P, pts, nb, near, shell, corr, s_prev, P)
+    rough, rough_ok, _, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
     return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok, jac
 
 
@@ -53,7 +54,7 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     :data:`F2F_FIT_RESIDUAL` local spacings (the first shell alone where the whole neighbourhood is
     refused); the nearest blob within :data:`F2F_GATE` (:data:`F2F_GATE_ALONE` when an immediate design
     neighbour is not certified now, so that it may share the blob, unless each such neighbour has a blob
-    of its own, another than the marker's, within :data:`F2F_APART` local spacings of its predicted
+    of its own, another than the marker's, within :data:`~pipeline.vision.identity.apart.F2F_APART` local spacings of its predicted
     place) of the prediction, :data:`F2F_RATIO` times and :data:`F2F_MARGIN` spacings nearer than the
     second-nearest blob (identified or not); and mutual: no other re-acquired prediction and no
     identified blob nearly as near to that blob. The blob must be free: a blob that carries another

@@ -48,6 +48,8 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipeline.vision.identity.apart import lost_neighbours_apart
+
 #: Gate about a marker's predicted position, as a fraction of the local spacing (the smallest of the
 #: nearest blob's nearest-neighbour distance now, the marker's and its neighbours' (median) in the
 #: previous frame, and the distance between the predictions: where pins crowd, the crowded distance).
@@ -60,10 +62,6 @@ F2F_GATE = 0.2
 #: neighbour, whose centre lies between the two: its gate is this tighter one (the detector's noise
 #: and a press's increment over two spacings leave ~0.03 spacings).
 F2F_GATE_ALONE = 0.1
-#: ... unless each such neighbour has a blob of its own within this many local spacings of where the
-#: marker's neighbourhood puts it (:func:`_apart`): a neighbour whose blob was missing from the previous
-#: frame (glare, a worn marker, a spurious blob beside it) and is back cannot share the marker's blob.
-F2F_APART = 0.3
 #: The correspondences start from markers that moved less than this fraction of the local spacing
 #: (nearest blob to the previous position). It is what the certification rests on: a frame that
 #: moved by more than 1 - F2F_BOOTSTRAP spacings between frames would be followed to the neighbours'
@@ -103,6 +101,17 @@ F2F_SHELL = 6
 #: across the crest, which would leave the marker too few neighbours to be fitted at all. A hexagonal
 #: lattice's first shell lies at one spacing, its second at 1.7.
 F2F_SHELL_REACH = 1.5
+#: Where both fits are refused for want of neighbours with a correspondence (crowded pins merged into
+#: one blob leave holes in the first shell; where the pins crowd in one direction only, the local
+#: spacing is the crowded one and the radius above shrinks with it), a marker whose start found its
+#: blob is fitted from its nearest neighbours that have one, within this many median spacings ...
+F2F_FOLLOWED_REACH = 3.0
+#: ... at least this many of them (one more than :data:`F2F_MIN_FIT`: a wider neighbourhood bends more,
+#: and the residual test, still in the marker's own local spacings, must have a neighbour to spare).
+#: Measured on the twin's narrow sine (pi/5, hexagon217_sep180, 4 -> 5 mm with friction): 10 pins merged
+#: into their neighbours' blobs and the fits refused around them ate 20 followed markers away, round
+#: by round; with this fit all 207 markers that kept a blob of their own were followed, none wrong.
+F2F_FOLLOWED_MIN_FIT = 5
 #: Rounds of prediction (a correspondence reaches a marker from neighbours one ring nearer the
 #: bootstrapped ones each round). A large step bootstraps only the slow part of the skin (the twin's
 #: 2 pi / 5 sine at 3 -> 4 mm: 79 of 216 markers) and the rest is reached ring by ring across a
@@ -134,8 +143,9 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
     usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
     deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
-    local spacings; the previous position where not usable; and the fitted map's Jacobian (M, 4)
-    (previous -> current position, row-major; zero where not usable). ``B`` (M, 2): the base each motion is
+    local spacings; the previous position where not usable; the fitted map's Jacobian (M, 4)
+    (previous -> current position, row-major; zero where not usable); and the worst neighbour's residual
+    in local spacings (M,) (inf where not usable). ``B`` (M, 2): the base each motion is
     taken from (``P``: the frame's increment; the positions expected at the last velocity: the
     change of the increment), the prediction being the marker's base moved by the fitted motion.
 
@@ -150,6 +160,7 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
     pred = P.copy()
     ok = np.zeros(m, np.bool_)
     jac = np.zeros((m, 4))
+    res = np.full(m, np.inf)
     for i in range(m):
         n = 0
         sx = sy = su = sv = 0.0
@@ -193,6 +204,7 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
         b11 = (cvy * cxx - cvx * cxy) / d
         lim = max_residual * s_prev[i]
         good = True
+        worst = 0.0
         for q in range(k):
             j = nb[i, q]
             if near[i, q] and corr[j] >= 0:
@@ -203,16 +215,18 @@ def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
                 if ru * ru + rv * rv > lim * lim:
                     good = False
                     break
+                worst = max(worst, ru * ru + rv * rv)
         if not good:
             continue
         ok[i] = True
+        res[i] = math.sqrt(worst) / s_prev[i]
         pred[i, 0] = B[i, 0] + mu - b00 * mx - b01 * my
         pred[i, 1] = B[i, 1] + mv - b10 * mx - b11 * my
         jac[i, 0] = 1.0 + b00
         jac[i, 1] = b01
         jac[i, 2] = b10
         jac[i, 3] = 1.0 + b11
-    return pred, ok, jac
+    return pred, ok, jac, res
 
 
 def _neighbourhoods(P: np.ndarray):
@@ -237,16 +251,38 @@ def _neighbourhoods(P: np.ndarray):
     return nb, near, near & first, s_prev
 
 
-def _fit(P, pts, nb, near, shell, corr, s_prev, B):
+def _fit(P, pts, nb, near, shell, corr, s_prev, B, far=None):
     """:func:`_predict` under the frame-to-frame tests, over the whole neighbourhood ``near`` and,
-    where that fit is refused, over the first ``shell`` alone (:data:`F2F_SHELL`)."""
-    pred, ok, jac = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
+    where that fit is refused, over the first ``shell`` alone (:data:`F2F_SHELL`); where both are
+    refused, for the markers ``far`` (those whose start found their blob: the fit then only confirms a
+    correspondence, never carries one into a region the start did not reach), over the nearest followed
+    markers (:func:`_fit_followed`)."""
+    pred, ok, jac, res = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
     if not ok.all():
-        p1, ok1, j1 = _predict(P, pts, nb, shell, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
+        p1, ok1, j1, r1 = _predict(P, pts, nb, shell, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
         ok1 &= ~ok
-        pred[ok1], jac[ok1] = p1[ok1], j1[ok1]
+        pred[ok1], jac[ok1], res[ok1] = p1[ok1], j1[ok1], r1[ok1]
         ok = ok | ok1
-    return pred, ok, jac
+    if far is not None and (far & ~ok).any():
+        p2, ok2, j2, r2 = _fit_followed(P, pts, corr, s_prev, B, far & ~ok)
+        pred[ok2], jac[ok2], res[ok2] = p2[ok2], j2[ok2], r2[ok2]
+        ok = ok | ok2
+    return pred, ok, jac, res
+
+
+def _fit_followed(P, pts, corr, s_prev, B, which):
+    """:func:`_predict` for the markers ``which`` from their :data:`F2F_NEIGHBOURS` nearest markers that
+    have a correspondence, within :data:`F2F_FOLLOWED_REACH` median spacings, at least
+    :data:`F2F_FOLLOWED_MIN_FIT` of them (same spread and residual tests)."""
+    has = np.flatnonzero(corr >= 0)
+    if len(has) < F2F_FOLLOWED_MIN_FIT + 1:
+        return P, np.zeros(len(P), bool), np.zeros((len(P), 4)), np.full(len(P), np.inf)
+    d, j = cKDTree(P[has]).query(P, k=min(F2F_NEIGHBOURS + 1, len(has)))
+    nb = np.ascontiguousarray(has[j], dtype=np.int64)
+    reach = F2F_FOLLOWED_REACH * np.median(s_prev[np.isfinite(s_prev)])
+    near = (nb != np.arange(len(P))[:, None]) & (d <= reach) & which[:, None]
+    pred, ok, jac, res = _predict(P, pts, nb, near, corr, s_prev, F2F_FOLLOWED_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
+    return pred, ok & which, jac, res
 
 
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
@@ -299,16 +335,21 @@ def _assign_mutual(out: np.ndarray, idx: np.ndarray, j1: np.ndarray, d1: np.ndar
 
 
 def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, expected: np.ndarray | None = None,
-                   design_nbr: np.ndarray | None = None, design_xy: np.ndarray | None = None) -> np.ndarray:
+                   design_nbr: np.ndarray | None = None, design_xy: np.ndarray | None = None,
+                   start_at_previous: bool = False) -> np.ndarray:
     """Ids of the previous frame's certified markers (``prev_xy`` (M, 2) px, ``prev_ids`` (M,)) that the
     frame-to-frame map certifies on the current blobs ``pts`` (n, 2); -1 elsewhere (see the module
     notes). The previous ids are taken as right: what this certifies is only which blob each became.
     ``expected`` (M, 2): where each marker is expected now (its previous position moved on at its
-    last frame's velocity; NaN where unknown), for the start only; default its previous position.
+    last frame's velocity; NaN where unknown): the start and the base of the fit of the motion's
+    change; default its previous position. ``start_at_previous``: the velocity is a guess (the motion
+    from the rest pattern, see :class:`~pipeline.vision.dtrc.DTRCTracker`): start from the previous
+    positions even so, and predict from the fit of the motion's change only where its worst residual
+    is no larger than the increment fit's.
     ``design_nbr`` (slots, K): each design slot's immediate design neighbours (-1 padded); a marker
     with one of them missing from ``prev_ids`` gets the gate :data:`F2F_GATE_ALONE`, unless (with
     ``design_xy`` (slots, 2), the design's x-y) each such neighbour has a blob of its own now
-    (:func:`_apart`)."""
+    (:func:`~pipeline.vision.identity.apart.lost_neighbours_apart`)."""
     n, m = len(pts), len(prev_ids)
     out = np.full(n, -1, np.int64)
     if n < F2F_MIN_FIT + 1 or m < F2F_MIN_FIT + 1:
@@ -331,21 +372,26 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
 
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
-    corr = _accept(E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
+    corr = _accept(P if start_at_previous else E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
+    started = corr >= 0
     moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok, jac = _fit(P, pts, nb, near, shell, corr, s_prev, P)
+        pred, ok, jac, res = _fit(P, pts, nb, near, shell, corr, s_prev, P, started)
         g = gate
         if apart.any():
             g = gate.copy()
-            g[_apart(P, prev_ids, pred, jac, ok & apart, known, design_nbr, design_xy, tree, s_prev)] = F2F_GATE
+            g[lost_neighbours_apart(P, prev_ids, pred, jac, ok & apart, known, design_nbr, design_xy, tree, s_prev)] = F2F_GATE
         if moving is not None and moving.any():
             # where the increment itself is not affine over the neighbourhood (pins crowding into
             # the crests faster frame by frame), its change from the last frame's still is: the
             # neighbours' departures from their last velocity, fitted the same way, move the
             # marker on from where its own last velocity puts it
-            pv, okv, _ = _fit(P, pts, nb, near, shell, np.where(moving, corr, -1), s_prev, E)
+            pv, okv, _, rv = _fit(P, pts, nb, near, shell, np.where(moving, corr, -1), s_prev, E, started)
             okv &= moving
+            if start_at_previous:
+                # a guessed velocity (the motion from rest; a sequence may start pressed and held)
+                # predicts only where its fit's worst residual is no larger than the increment's
+                okv &= rv <= res
             pred = np.where(okv[:, None], pv, pred)
             ok = ok | okv
         # where the skin crowds in this very frame, the predictions crowd with it
@@ -357,39 +403,3 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     hit = corr >= 0
     out[corr[hit]] = prev_ids[hit]
     return out
-
-
-def _apart(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, tree, s_prev) -> np.ndarray:
-    """Markers (of ``which``) whose immediate design neighbours missing from the previous frame each have a
-    blob of their own now, so that none of them can have merged with the marker into one blob (the case
-    :data:`F2F_GATE_ALONE` guards): the neighbour's previous position is put where the design-to-image map
-    of the marker's known neighbours (a linear map of design offsets, fitted to at least two, spread in two
-    directions) places it beside the marker, moved on by the marker's frame-to-frame map (Jacobian
-    ``jac``); its nearest blob now must be another than the marker's predicted one and within
-    :data:`F2F_APART` local spacings of that place. A neighbour without such a blob (missing now too, or
-    crowded onto the marker) leaves the marker at the tight gate."""
-    out = np.zeros(len(P), bool)
-    row = np.full(len(known), -1, np.int64)
-    row[prev_ids] = np.arange(len(prev_ids))
-    for i in np.flatnonzero(which):
-        me = prev_ids[i]
-        nbrs = design_nbr[me][design_nbr[me] >= 0]
-        have, missing = nbrs[known[nbrs]], nbrs[~known[nbrs]]
-        if len(have) < 2 or len(missing) == 0:
-            continue
-        dD = design_xy[have] - design_xy[me]
-        if np.linalg.matrix_rank(dD, tol=1e-6 * float(np.abs(dD).max())) < 2:
-            continue
-        A = np.linalg.lstsq(dD, P[row[have]] - P[i], rcond=None)[0]        # design offset -> previous image
-        J = jac[i].reshape(2, 2)
-        q = pred[i] + ((design_xy[missing] - design_xy[me]) @ A) @ J.T        # the neighbours now
-        out[i] = stand_apart(tree, q, pred[i], s_prev[i])
-    return out
-
-
-def stand_apart(tree: cKDTree, places: np.ndarray, pred: np.ndarray, spacing: float) -> bool:
-    """Whether each of ``places`` (k, 2), where a marker's lost neighbours are put now, has a blob of its own
-    within :data:`F2F_APART` local spacings (``spacing``, px) that is not the marker's nearest blob to its
-    prediction ``pred`` (2,)."""
-    d, j = tree.query(places)
-    return bool(np.all((j != tree.query(pred)[1]) & (d <= F2F_APART * spacing)))
