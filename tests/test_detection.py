@@ -328,3 +328,35 @@ def test_touching_pins_of_a_deep_narrow_sine_press_each_give_their_blob():
     d_blob, j = cKDTree(markers).query(blobs.xy_px)
     assert np.count_nonzero(d_blob > 1.5) <= 1
     assert np.bincount(j[d_blob <= 1.5]).max() == 1          # no pin with two blobs
+
+
+def test_narrowed_scales_size_a_blob_at_their_lowest_scale_as_the_full_scale_space_does(monkeypatch):
+    """Markers of radius 6.2 px (scale ~4.1) detected with the scale space narrowed to them (2.8, 4.0,
+    5.6 px): a pin of radius 4.5 px among them (as a pin seen edge-on looks, ~0.75 of its neighbours'
+    scale) peaks at the lowest scale, where its scale cannot be refined, and at 2.8 px it is under the size
+    test's 1/1.4 of its neighbours'. The full scale space sizes it 3.13 px and keeps it; so must the
+    narrowed one (the candidate is sized again with the scale below: 3.07 px). A speck of radius 2.5 px
+    stays rejected by both. Without the second sizing the narrowed detector drops the pin."""
+    import pipeline.vision.detection.rejection as rejection
+    from pipeline.vision.detection import marker_radius_px
+
+    rng = np.random.default_rng(5)
+    img = np.full((280, 360), 12, np.uint8)
+    sep = 24.0
+    lattice = [(60 + sep * i + (sep / 2 if j % 2 else 0), 40 + sep * 0.866 * j) for i in range(10) for j in range(10)]
+    pin, speck = lattice[44], lattice[66]
+    for (x, y) in lattice:
+        r = 4.5 if (x, y) == pin else 2.5 if (x, y) == speck else 6.2
+        cv2.circle(img, (int(round(x * 16)), int(round(y * 16))), int(r * 16), 215, -1, cv2.LINE_AA, shift=4)
+    img = np.clip(cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+    narrowed = DetectionParams().for_marker_radius(marker_radius_px(detect_markers(img)))
+    assert min(narrowed.sigmas_px) == 2.8
+
+    def found(blobs, q):
+        return bool(cKDTree(blobs.xy_px).query(q)[0] < 1.5)
+
+    for params in (DetectionParams(), narrowed):
+        blobs = detect_markers(img, params=params)
+        assert found(blobs, pin) and not found(blobs, speck) and len(blobs) == 99
+    monkeypatch.setattr(rejection, "scale_below_lowest", lambda grey, cand, which, params: cand[which, 2].copy())
+    assert not found(detect_markers(img, params=narrowed), pin)

@@ -62,17 +62,18 @@ def narrower_cell():
 
 def test_press_sequence_identifies_the_crowded_pose_of_the_narrower_sine(narrower_cell):
     """z = 2.5·sin(π/5·x) with the design's friction (μ = 1), the crest pins crowding faster frame by
-    frame. Measured: 127, 127, 127, 126, 122 of 127 at 1-5 mm, none wrong, every marker with a blob of
-    its own followed; the five lost are pins at the edge of the left view, seen edge-on, whose scale
-    falls below the narrowed scale space's size test (the full scale space finds all 127). Without the
-    first frame's motion from rest as the second frame's velocity, an outer-ring pin held by the clamped
-    rim is lost from 2 mm on (127, 126, 126, 125, 121; 120 at 5 mm without the fit from the nearest
-    followed markers too); frictionless, on a plate covering the module: 127, 127, 127, 127, 121 (fitting the increment instead of its change from the last
-    velocity: 127, 127, 123, 116, 101). Tolerance: >= 95 % in every frame."""
+    frame. Measured: 127 of 127 in every frame, 1-5 mm, none wrong. Before the detector sized a pin at
+    its narrowed scale space's lowest scale again, 127, 127, 127, 126, 122: pins at the edge of the left
+    view, seen edge-on, fell under the size test; before that, without the first frame's motion from
+    rest as the second frame's velocity, an outer-ring pin held by the clamped rim was lost from 2 mm on
+    (127, 126, 126, 125, 121; 120 at 5 mm without the fit from the nearest followed markers too).
+    Frictionless, on a plate covering the module: 127, 127, 127, 127, 121 (fitting the increment instead
+    of its change from the last velocity: 127, 127, 123, 116, 101). Tolerance: >= 95 % at 5 mm, every
+    frame to 4 mm whole."""
     c = narrower_cell
     assert c["wrong_ids_sequence"] == 0
     assert c["matched_fraction"] >= 0.95
-    assert min(c["matched_fraction_frames"]) >= 0.95
+    assert c["matched_fraction_frames"][:4] == [1.0] * 4
 
 
 @pytest.fixture(scope="module")
@@ -107,20 +108,19 @@ def dense_narrower_cell():
     return cell
 
 
-@pytest.mark.xfail(strict=True, reason="with the design's friction (μ = 1) and the sine plate rounded off beyond 13.5 mm the "
-                   "detector loses 11 pins of the right view at 5 mm (6 merged in pairs, a touching pair, a saturating pin "
-                   "taken for glare, 2 below the size test): 217, 217, 217, 217, 206 of 217, none wrong, every marker with a "
-                   "blob of its own followed; 94.9 %, below the 95 % goal")
 def test_press_sequence_of_the_dense_pattern_under_the_narrower_sine_keeps_touching_pins(dense_narrower_cell):
     """hexagon217_sep180 under z = 2.5·sin(π/5·x): at 5 mm the crest pins of the right view touch in rows
     and the far flank's, seen obliquely, touch side by side; each must give its own blob, and each
     must be followed from the previous frame where the map bends over two spacings (the far flank)
     or the pins crowd along the crest only (the first shell's fit), or, where merged pins leave holes
     in the first shell, from the nearest followed markers. Measured with the design's friction: 217,
-    217, 217, 217, 206 of 217 at 1-5 mm, none wrong, all 206 markers with a blob of their own in both
-    views followed (187 without the fit from the nearest followed markers; 215, 215, 215, 203 from 2 mm
-    without the first frame's motion from rest as the second frame's velocity, two outer-ring pins of
-    the left view lost; 184 at 5 mm without either). Frictionless, on a plate covering the module: 217, 217, 217, 217, 214 (before:
+    217, 217, 217, 207 of 217 at 1-5 mm (95.4 %), none wrong, every marker with a blob of its own in
+    both views followed; the right view at 5 mm finds 210 blobs (six crest pins merged in pairs, a
+    touching pair rejected as one blob, a pin whose saturating core is taken for glare, one more not
+    found). 206 before a pin at the narrowed scale space's lowest scale was sized again (one on the far
+    flank fell under the size test); 187 without the fit from the nearest followed markers; 215, 215,
+    215, 203 from 2 mm without the first frame's motion from rest as the second frame's velocity, two
+    outer-ring pins of the left view lost; 184 at 5 mm without any of the three. Frictionless, on a plate covering the module: 217, 217, 217, 217, 214 (before:
     217, 217, 217, 216, 165 with a pin dropped to the response merged between it and its brighter
     neighbour and each oblique pair found as one blob; then 217, 217, 217, 216, 200 with ~16 blobs found
     but not followed, the fit over two shells refused). Tolerance: >= 95 % in every frame."""

@@ -10,6 +10,7 @@ from pipeline.vision.detection.candidates import ELONGATION, MEASURE_SIGMA, RADI
 from pipeline.vision.detection.images import U8_SCALE
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import suppress
+from pipeline.vision.detection.scale_space import scale_below_lowest
 from pipeline.vision.detection.photometry import (RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS,
                                                   WINDOW_MARGIN_PX, Measurements, group_offsets, refine_and_measure)
 
@@ -272,6 +273,16 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
     small = cand[:, SIGMA] < med / params.max_size_ratio
     if small.any():
         small[small] = cand[small, SIGMA] < _local_scale(cand, typical, small) / params.max_size_ratio
+    # a candidate the size test would reject at the lowest scale of a narrowed scale space is sized
+    # again with the scale below (its scale could not be refined there), where that can save it: the
+    # parabola moves a scale by at most half a grid step (2**0.25)
+    again = np.flatnonzero(small & keep & isolated)
+    if len(again):
+        need = _local_scale(cand, typical, small & keep & isolated) / params.max_size_ratio
+        can = need <= 2.0 ** 0.25 * cand[again, SIGMA]
+        again, need = again[can], need[can]
+        if len(again):
+            small[again] = scale_below_lowest(grey, cand, again, params) < need
     radius = RADIUS_PER_SIGMA * cand[:, MEASURE_SIGMA]
     inside = np.zeros(len(cand), bool)
     if params.isolation_inside is not None or debris.any():

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
 
 from pipeline.vision.detection import candidates
+from pipeline.vision.detection.candidates import RADIUS_PER_SIGMA
 from pipeline.vision.detection.images import CACHE_ENTRIES, Workspace
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import doh_peaks, peak_kernel
@@ -156,3 +158,47 @@ def find_candidates(grey: np.ndarray, params: DetectionParams) -> np.ndarray:
         return candidates.empty()
     return peak_kernel(peaks[:n_peaks], *packs, offs, hs, ws, fxs, fys, log_s)
 
+
+
+
+
+#: Half-side (px) of the window about a candidate in which :func:`scale_below_lowest` runs the scale space
+#: again; a multiple of 8 so the window's pyramid levels start on whole pixels of the image's.
+_RESIZE_HALF_PX = 32
+
+
+def scale_below_lowest(grey: np.ndarray, cand: np.ndarray, which: np.ndarray, params: DetectionParams) -> np.ndarray:
+    """The scales of the candidates ``which`` (indices), each re-measured where it sits at the lowest scale
+    of a narrowed scale space (others as they are).
+
+    A scale space narrowed to the markers' size (:meth:`DetectionParams.for_marker_radius`) cannot size a
+    blob whose response peaks at its lowest scale: there is no finer scale for the parabola, so the
+    scale stays at the lowest, about one grid step (1.41) below the markers' own and just under the size
+    test's limit (``max_size_ratio`` 1.4). A pin seen edge-on at the edge of a view or on the far flank
+    of a narrow press (0.72-0.78 of its neighbours' scale in the full scale space) would be rejected as
+    small where the full scale space keeps it. Each such candidate's window (:data:`_RESIZE_HALF_PX`)
+    is searched again at the grid's scale below the lowest, the lowest and the next, and the candidate
+    takes the scale of the peak found there within half its radius. The full scale space's own lowest
+    is the detector's floor: nothing to re-measure."""
+    sig = sorted(params.sigmas_px)
+    out = cand[which, candidates.SIGMA].copy()
+    finer = [s_ for s_ in DetectionParams().sigmas_px if s_ < sig[0] - 1e-9]
+    if not finer or len(sig) < 2:
+        return out
+    lo = sig[0]
+    local = replace(params, sigmas_px=(max(finer), lo, sig[1]))
+    h, w = grey.shape
+    side = 2 * _RESIZE_HALF_PX + 8                 # one window shape: its plan and buffers are reused
+    for r, i in enumerate(which):
+        if cand[i, candidates.SIGMA] > lo * (1 + 1e-9):
+            continue
+        x0 = min(max(0, (int(cand[i, candidates.X]) - _RESIZE_HALF_PX) // 8 * 8), max(0, w - side))
+        y0 = min(max(0, (int(cand[i, candidates.Y]) - _RESIZE_HALF_PX) // 8 * 8), max(0, h - side))
+        found = find_candidates(np.ascontiguousarray(grey[y0:y0 + side, x0:x0 + side]), local)
+        if len(found) == 0:
+            continue
+        d = np.hypot(found[:, candidates.X] + x0 - cand[i, candidates.X], found[:, candidates.Y] + y0 - cand[i, candidates.Y])
+        k = int(np.argmin(d))
+        if d[k] <= 0.5 * RADIUS_PER_SIGMA * lo:
+            out[r] = found[k, candidates.SIGMA]
+    return out
