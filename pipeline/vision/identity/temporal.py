@@ -26,7 +26,9 @@ A marker's correspondence is accepted only when
   map fits them all to within :data:`F2F_FIT_RESIDUAL` local spacings (one neighbour followed to the
   wrong blob is a whole spacing off, so the fit refuses to predict rather than mislead); where the
   whole neighbourhood is refused, its first shell (:data:`F2F_SHELL`) is fitted alone under the same
-  tests (a press bends the map over two spacings where one spacing is still affine);
+  tests (a press bends the map over two spacings where one spacing is still affine), and where both
+  are refused, a marker the start found is fitted from its nearest followed markers
+  (:data:`F2F_FOLLOWED_REACH`);
 * the nearest blob lies within :data:`F2F_GATE` local spacings of the prediction (:data:`F2F_GATE_ALONE`
   next to a marker that was not followed), and the second-nearest blob is at least :data:`F2F_RATIO`
   times and :data:`F2F_MARGIN` local spacings farther;
