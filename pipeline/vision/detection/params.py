@@ -104,8 +104,10 @@ class DetectionParams:
         Keeps three consecutive scales of ``sigmas_px``: the one nearest ``radius_px / sqrt(2)`` and
         its neighbours (the same grid, so the same discretisation and scale selection as the full
         set). With the default sqrt(2) grid the interpolated scale then sizes markers from ~0.7 r to
-        ~1.4 r (indentation changes the apparent size by far less), and the scale space costs about
-        half (the fine scales, which run on the largest pyramid levels, are skipped). Typical use:
+        ~1.4 r, and the scale space costs about half (the fine scales, which run on the largest pyramid
+        levels, are skipped). A blob that peaks at the lowest scale (a pin seen edge-on, ~0.73 r) and
+        that only the size test would reject is sized again in a window with the scale below
+        (:func:`pipeline.vision.detection.scale_space.scale_below_lowest`). Typical use:
         detect the first frame with the defaults, then ``params.for_marker_radius(marker_radius_px(blobs))``
         for the stream.
 
