@@ -87,6 +87,29 @@ def test_truth_file_keeps_the_validity_and_old_files_load_without_it(tmp_path):
     assert Truth.load_npz(tmp_path / "b.npz").validity is None and Truth.load_npz(tmp_path / "b.npz").physics_valid is None
 
 
+@pytest.mark.render
+def test_a_pin_beyond_the_gel_flags_the_frame_which_is_drawn_with_the_pin_stopped_at_the_window():
+    """A pin's tip past the gel, in the acrylic window (a real pin cannot get there): the frame is invalid
+    and says why, and is drawn with the tip stopped 0.01 mm inside the gel, so that a sequence keeps its
+    frame; a frame not flagged so still makes the renderer refuse."""
+    from pipeline.design import load_design
+    from twin.render import RenderError
+    from twin.simulate import render_truths
+
+    pen = skin_penetration(*_grid_skin(), lambda xy: np.full(len(xy), 0.02))
+    bad = frame_validity(pen, contact_force_n=1.0, settled=True, mujoco_warnings={}, pin_overrun=0.3)
+    ok = frame_validity(pen, contact_force_n=1.0, settled=True, mujoco_warnings={})
+    assert not bad.valid and "0.300 mm beyond the gel" in bad.reasons[0] and ok.valid and ok.pin_overrun_mm == 0
+    design = load_design("hexagon127")
+    xyz = design.rest_markers_mm().copy()
+    xyz[5, 2] = design.gel_acrylic_z_mm - 0.3
+    hm = HeightMap(np.arange(3.0), np.arange(2.0), np.zeros((2, 3)))
+    args = (np.arange(len(xyz)), xyz, np.tile([0.0, 0.0, -1.0], (len(xyz), 1)), *_grid_skin(half_mm=21.0), hm, np.zeros(4))
+    assert render_truths(design, [Truth(*args, bad.to_dict())], rng=np.random.default_rng(0))[0].left.shape == (480, 640, 3)
+    with pytest.raises(RenderError, match="in the gel"):
+        render_truths(design, [Truth(*args, ok.to_dict())], rng=np.random.default_rng(0))
+
+
 @pytest.mark.physics
 def test_face_contact_keeps_a_sharp_tip_out_where_vertex_contacts_let_it_through():
     """σ² = 2.5 mm² Gaussian pressed 3 mm: the tip (curvature radius 0.5 mm) passes between the skin's

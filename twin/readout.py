@@ -82,13 +82,16 @@ class SkinReadout:
         """Physical validity of the current state (:mod:`twin.validity`): the outer skin's penetration
         into the indenter's true surface at vertices, face centroids, edge midpoints and the indenter's
         own 0.1 mm samples over the deformable skin (the clamped rim is the rigid mount: how far the
-        indenter reaches below it is recorded as ``rim_overlap_mm``); the contact force; ``settled``;
+        indenter reaches below it is recorded as ``rim_overlap_mm``); how far the deepest pin's tip lies
+        beyond the gel, into the acrylic window (``pin_overrun_mm``); the contact force; ``settled``;
         MuJoCo's warning counters so far."""
         top = self.skin_vertices_mm()
         free = ~self.mesh.pinned[self.mesh.top]
         pen = skin_penetration(top, self.mesh.top_faces, self.indenter_z_at, free=free)
+        overrun = max(0.0, float(self.design.gel_acrylic_z_mm - self.markers()[0][:, 2].min()))
         return frame_validity(pen, contact_force_n=self.contact_force_n(), settled=settled,
-                              mujoco_warnings=self.warnings(), rim_overlap=rim_overlap_mm(top, ~free, self.indenter_z_at))
+                              mujoco_warnings=self.warnings(), rim_overlap=rim_overlap_mm(top, ~free, self.indenter_z_at),
+                              pin_overrun=overrun)
 
     def truth(self, *, settled: bool | None = None) -> Truth:
         """Truth of the current state (sensor frame, mm); with ``settled`` given, its physics validity

@@ -88,16 +88,27 @@ def motion_truth(design: SensorDesign, indenter: Indenter, motion: str, *, yaw_d
     return _run(design, indenter, m, mesh, progress, friction)
 
 
+#: Where an invalid frame's pins that went beyond the gel are drawn: this far inside it (mm).
+PIN_STOP_MM = 0.01
+
+
 def render_truths(design: SensorDesign, truths: list[Truth], *, rng: np.random.Generator,
                   timestamps_s: list[float] | None = None) -> list[StereoFrame]:
-    """Render each truth with one :class:`twin.render.StereoRenderer` (sensor noise from ``rng``)."""
+    """Render each truth with one :class:`twin.render.StereoRenderer` (sensor noise from ``rng``).
+
+    A frame flagged physically invalid because a pin's tip went beyond the gel (``pin_overrun_mm``) is
+    drawn with those tips stopped :data:`PIN_STOP_MM` inside it, where the acrylic window would stop a
+    real pin: the sequence keeps its frame, which is never scored (its truth says why)."""
     from twin.render import StereoRenderer
 
     r = StereoRenderer(design, rng=rng)
     frames = []
     for i, t in enumerate(truths):
-        f = r.render_markers(t.marker_xyz_mm, t.marker_axis, skin_vertices_mm=t.skin_vertices_mm,
-                             skin_faces=t.skin_faces)
+        xyz = t.marker_xyz_mm
+        if t.validity is not None and (t.validity.get("pin_overrun_mm") or 0.0) > 0:
+            xyz = xyz.copy()
+            xyz[:, 2] = np.maximum(xyz[:, 2], design.gel_acrylic_z_mm + PIN_STOP_MM)
+        f = r.render_markers(xyz, t.marker_axis, skin_vertices_mm=t.skin_vertices_mm, skin_faces=t.skin_faces)
         ts = timestamps_s[i] if timestamps_s is not None else float(i)
         frames.append(StereoFrame(f.image, timestamp_s=ts, index=i, source=f"twin:{design.name}"))
     return frames

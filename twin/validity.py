@@ -141,8 +141,9 @@ def rim_overlap_mm(skin_vertices_mm: np.ndarray, clamped: np.ndarray,
 class FrameValidity:
     """Everything that decides whether a simulated frame may be scored.
 
-    ``valid`` is False when the skin penetrates the indenter beyond ``PENETRATION_MAX_MM``, the settle
-    did not converge, or MuJoCo raised any warning; ``reasons`` names each failed check.
+    ``valid`` is False when the skin penetrates the indenter beyond ``PENETRATION_MAX_MM``, a pin's tip
+    lies beyond the gel (``pin_overrun_mm`` > 0: into the acrylic window, which a real pin cannot reach),
+    the settle did not converge, or MuJoCo raised any warning; ``reasons`` names each failed check.
     """
 
     penetration_max_mm: float
@@ -154,6 +155,7 @@ class FrameValidity:
     settled: bool
     mujoco_warnings: dict = field(default_factory=dict)
     rim_overlap_mm: float = 0.0
+    pin_overrun_mm: float = 0.0
     valid: bool = True
     reasons: tuple = ()
 
@@ -172,17 +174,20 @@ class FrameValidity:
 
 
 def frame_validity(pen: Penetration, *, contact_force_n: float, settled: bool, mujoco_warnings: dict,
-                   rim_overlap: float = 0.0, penetration_max_mm: float = PENETRATION_MAX_MM) -> FrameValidity:
-    """Combine the geometric check with the solver's health into one verdict."""
+                   rim_overlap: float = 0.0, penetration_max_mm: float = PENETRATION_MAX_MM,
+                   pin_overrun: float = 0.0) -> FrameValidity:
+    """Combine the geometric checks with the solver's health into one verdict."""
     reasons = []
     if not np.isfinite(pen.max_mm):
         reasons.append("skin mesh degenerate (non-finite vertices or faces folded over each other)")
     elif pen.max_mm > penetration_max_mm:
         reasons.append(f"skin {pen.max_mm:.3f} mm inside the indenter (bound {penetration_max_mm:g} mm)")
+    if pin_overrun > 0:
+        reasons.append(f"a pin's tip {pin_overrun:.3f} mm beyond the gel, into the acrylic window")
     if not settled:
         reasons.append("press did not settle to equilibrium")
     if mujoco_warnings:
         reasons.append("MuJoCo warnings: " + ", ".join(f"{k} x{v}" for k, v in sorted(mujoco_warnings.items())))
     return FrameValidity(pen.max_mm, pen.p99_mm, pen.vertex_max_mm, pen.gap_touching_max_mm, pen.gap_touching_rms_mm,
                          float(contact_force_n), bool(settled), dict(mujoco_warnings), float(rim_overlap),
-                         not reasons, tuple(reasons))
+                         float(pin_overrun), not reasons, tuple(reasons))

@@ -351,5 +351,6 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
             "valley_gap_mm": float(np.nanmean(gap[valley])) if np.any(valley) else float("nan"),
             "upper_points": int(upper.sum()), "valley_points": int(valley.sum()),
             "skin_penetration_grid_mm": _penetration(gap, g["r"], radius),
-            **validity_columns(truth)}
+            # a sequence read through a physically invalid frame is not scored, whichever frame it was
+            **validity_columns(next((t for _, t in run if t.physics_valid is False), truth))}
     return cell, g
