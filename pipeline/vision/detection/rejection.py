@@ -272,17 +272,15 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
     big_ok = cand[:, SIGMA] <= params.max_size_ratio * med
     small = cand[:, SIGMA] < med / params.max_size_ratio
     if small.any():
-        small[small] = cand[small, SIGMA] < _local_scale(cand, typical, small) / params.max_size_ratio
-    # a candidate the size test would reject at the lowest scale of a narrowed scale space is sized
-    # again with the scale below (its scale could not be refined there), where that can save it: the
-    # parabola moves a scale by at most half a grid step (2**0.25)
-    again = np.flatnonzero(small & keep & isolated)
-    if len(again):
-        need = _local_scale(cand, typical, small & keep & isolated) / params.max_size_ratio
-        can = need <= 2.0 ** 0.25 * cand[again, SIGMA]
-        again, need = again[can], need[can]
-        if len(again):
-            small[again] = scale_below_lowest(grey, cand, again, params) < need
+        idx = np.flatnonzero(small)
+        need = _local_scale(cand, typical, small) / params.max_size_ratio
+        small[idx] = cand[idx, SIGMA] < need
+        # a candidate the size test would reject at the lowest scale of a narrowed scale space is sized
+        # again with the scale below (its scale could not be refined there), where that can save it: the
+        # parabola moves a scale by at most half a grid step (2**0.25)
+        again = small[idx] & keep[idx] & isolated[idx] & (need <= 2.0 ** 0.25 * cand[idx, SIGMA])
+        if again.any():
+            small[idx[again]] = scale_below_lowest(grey, cand, idx[again], params) < need[again]
     radius = RADIUS_PER_SIGMA * cand[:, MEASURE_SIGMA]
     inside = np.zeros(len(cand), bool)
     if params.isolation_inside is not None or debris.any():

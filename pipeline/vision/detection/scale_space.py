@@ -159,9 +159,6 @@ def find_candidates(grey: np.ndarray, params: DetectionParams) -> np.ndarray:
     return peak_kernel(peaks[:n_peaks], *packs, offs, hs, ws, fxs, fys, log_s)
 
 
-
-
-
 #: Half-side (px) of the window about a candidate in which :func:`scale_below_lowest` runs the scale space
 #: again; a multiple of 8 so the window's pyramid levels start on whole pixels of the image's.
 _RESIZE_HALF_PX = 32
@@ -197,7 +194,8 @@ def scale_below_lowest(grey: np.ndarray, cand: np.ndarray, which: np.ndarray, pa
         found = find_candidates(np.ascontiguousarray(grey[y0:y0 + side, x0:x0 + side]), local)
         if len(found) == 0:
             continue
-        d = np.hypot(found[:, candidates.X] + x0 - cand[i, candidates.X], found[:, candidates.Y] + y0 - cand[i, candidates.Y])
+        d = np.hypot(found[:, candidates.X] + x0 - cand[i, candidates.X],
+                     found[:, candidates.Y] + y0 - cand[i, candidates.Y])
         k = int(np.argmin(d))
         if d[k] <= 0.5 * RADIUS_PER_SIGMA * lo:
             out[r] = found[k, candidates.SIGMA]
