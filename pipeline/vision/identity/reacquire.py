@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT,
                                                F2F_RATIO, F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods,
-                                               _nn_dist, _predict)
+                                               _nn_dist, _predict, expected_positions)
 from pipeline.vision.identity.apart import stand_apart
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
@@ -30,11 +30,22 @@ __all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
 REACQUIRE_FRAMES = 3
 
 
-def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray):
+def _fit_frame(P: np.ndarray, corr: np.ndarray, pts: np.ndarray, expected: np.ndarray | None = None):
     """The frame-to-frame fit's neighbour structure for markers at ``P`` (one earlier frame), and each
-    one's current prediction from the neighbours that have a current blob ``corr`` (see :func:`_predict`)."""
+    one's current prediction from the neighbours that have a current blob ``corr`` (see :func:`_predict`).
+    ``expected`` (M, 2): where each marker is expected at its last velocity (NaN where unknown): where the
+    marker's and its neighbours' velocities are known, the fitted motion is their departure from it
+    (the frame-to-frame map's fit of the motion's change), else the increment."""
     nb, near, shell, s_prev = _neighbourhoods(P)
     pred, ok, jac, _ = _fit(P, pts, nb, near, shell, corr, s_prev, P)
+    if expected is not None:
+        moving = np.isfinite(expected).all(axis=1)
+        if moving.sum() > F2F_MIN_FIT:
+            E = np.ascontiguousarray(np.where(moving[:, None], expected, P))
+            pv, okv, jv, _ = _fit(P, pts, nb, near, shell, np.where(moving, corr, -1), s_prev, E)
+            okv &= moving
+            pred[okv], jac[okv] = pv[okv], jv[okv]
+            ok = ok | okv
     rough, rough_ok, _, _ = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, np.inf, P)
     return pred, ok, s_prev, np.where(ok[:, None], pred, rough), ok | rough_ok, jac
 
@@ -151,7 +162,8 @@ def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
     return _assign_mutual(out, idx, j1, d1, s, np.vstack([pred[idx], pts[taken], rivals]), pts)
 
 
-def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.ndarray,
+               before: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Where the markers not certified in the current frame are, estimated, so that the next frame may
     re-acquire them from one frame's motion rather than from their last certified position several frames
     back (or never, for a marker whose blob was missing from the sequence's first frame): (xy_px (L, 2),
@@ -161,7 +173,11 @@ def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.nd
     (xy_px, ids): this frame's certified markers. A marker with a previous position is moved by the affine
     map of its neighbours' motion, under the frame-to-frame fit's tests (neighbours certified in both
     frames; at least :data:`F2F_MIN_FIT`, spread in two directions, each fitted to :data:`F2F_FIT_RESIDUAL`
-    local spacings); one without is placed by the affine map from the design to this frame fitted to
+    local spacings); with ``before`` (xy_px, ids), the places one frame earlier (certified and carried),
+    by their departure from its and their last velocity where those are known (:func:`_fit_frame`: where
+    pins crowd into a sine's crest the increment is not affine over two spacings, its change is; on
+    square121 under the pi/5 sine, 3 % + 3 % defects, the carried places' median error at 5 mm fell from
+    0.18 to 0.07 local spacings); one without is placed by the affine map from the design to this frame fitted to
     its certified immediate design neighbours (at least :data:`F2F_MIN_FIT`, spread in two directions,
     each within :data:`F2F_FIT_RESIDUAL` median spacings of the fit). An estimate is never an id: re-acquisition
     from it passes every frame-to-frame test on a free blob (:func:`reacquire`)."""
@@ -179,7 +195,8 @@ def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.nd
     row[cur_ids] = np.arange(len(cur_ids))
     corr = row[prev_ids]
     if len(prev_ids) > F2F_MIN_FIT and (corr < 0).any():   # the fits only where a previous marker is lost now
-        pred, ok, _, _, _, _ = _fit_frame(np.ascontiguousarray(prev_xy), corr, np.ascontiguousarray(cur_xy))
+        E = None if before is None or len(before[1]) == 0 else expected_positions(prev_xy, prev_ids, *before)
+        pred, ok, _, _, _, _ = _fit_frame(np.ascontiguousarray(prev_xy), corr, np.ascontiguousarray(cur_xy), E)
         moved = ok & (corr < 0)
         at[prev_ids[moved]] = pred[moved]
     pos = np.full((n_slots, 2), np.nan)

@@ -27,8 +27,9 @@ A marker's correspondence is accepted only when
   wrong blob is a whole spacing off, so the fit refuses to predict rather than mislead); where the
   whole neighbourhood is refused, its first shell (:data:`F2F_SHELL`) is fitted alone under the same
   tests (a press bends the map over two spacings where one spacing is still affine), and where both
-  are refused, a marker the start found is fitted from its nearest followed markers
-  (:data:`F2F_FOLLOWED_REACH`);
+  are refused, a marker the start found is fitted from its nearest followed markers in the image
+  (:data:`F2F_FOLLOWED_REACH`) or, where too few lie within that reach, in the design
+  (:data:`F2F_DESIGN_REACH`);
 * the nearest blob lies within :data:`F2F_GATE` local spacings of the prediction (:data:`F2F_GATE_ALONE`
   next to a marker that was not followed), and the second-nearest blob is at least :data:`F2F_RATIO`
   times and :data:`F2F_MARGIN` local spacings farther;
@@ -44,13 +45,11 @@ last certified position and its neighbours' motion since then.
 
 from __future__ import annotations
 
-import math
-
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.apart import lost_neighbours_apart
+from pipeline.vision.identity.motion_fit import _predict
 
 #: Gate about a marker's predicted position, as a fraction of the local spacing (the smallest of the
 #: nearest blob's nearest-neighbour distance now, the marker's and its neighbours' (median) in the
@@ -114,6 +113,13 @@ F2F_FOLLOWED_REACH = 3.0
 #: into their neighbours' blobs and the fits refused around them ate 20 followed markers away, round
 #: by round; with this fit all 207 markers that kept a blob of their own were followed, none wrong.
 F2F_FOLLOWED_MIN_FIT = 5
+#: Where every fit above is refused for want of neighbours with a correspondence within reach in the
+#: image (a view that stretches the skin in one direction: square121 under the pi/5 sine at 5 mm puts a
+#: crest marker 26-34 px from three neighbours and 67 px or more from all others, beyond both image
+#: reaches), a marker whose start found its blob is fitted from its nearest followed markers in the
+#: design (their ids are known), within this many design pitches, at least :data:`F2F_FOLLOWED_MIN_FIT`
+#: of them, under the same tests: a design neighbourhood does not shrink with the view's foreshortening.
+F2F_DESIGN_REACH = 2.5
 #: Rounds of prediction (a correspondence reaches a marker from neighbours one ring nearer the
 #: bootstrapped ones each round). A large step bootstraps only the slow part of the skin (the twin's
 #: 2 pi / 5 sine at 3 -> 4 mm: 79 of 216 markers) and the rest is reached ring by ring across a
@@ -138,99 +144,6 @@ def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, i
     return 2.0 * xy - then[ids]
 
 
-@numba.njit(cache=True, nogil=True)
-def _predict(P, pts, nb, near, corr, s_prev, min_fit, spread, max_residual, B):
-    """Each previous marker's current position predicted by the affine map of its neighbours' motion
-    (previous -> current positions of the neighbours ``nb`` within reach ``near`` that have a
-    correspondence ``corr``), the marker itself excluded. Returns (prediction (M, 2), usable (M,)):
-    usable when at least ``min_fit`` neighbours spread in two directions (smaller principal standard
-    deviation >= ``spread`` local spacings) and the map fits every one of them to ``max_residual``
-    local spacings; the previous position where not usable; the fitted map's Jacobian (M, 4)
-    (previous -> current position, row-major; zero where not usable); and the worst neighbour's residual
-    in local spacings (M,) (inf where not usable). ``B`` (M, 2): the base each motion is
-    taken from (``P``: the frame's increment; the positions expected at the last velocity: the
-    change of the increment), the prediction being the marker's base moved by the fitted motion.
-
-    Not the sums of :mod:`pipeline.vision.identity.fits` on purpose: those are one-pass raw sums about an
-    origin, kept so that every leave-one-out fit of a design neighbourhood is one subtraction and their
-    design half can be tabulated per design; this fit is made once per marker (the marker is never among
-    its own neighbours), so it takes the means first and then the centred moments (two passes, no
-    cancellation) and tests the spread per point in local spacings (``spread``), where the design fits
-    test the total scatter. Same map in exact arithmetic, different rounding and collinearity test: one
-    routine for both would move borderline decisions."""
-    m, k = nb.shape
-    pred = P.copy()
-    ok = np.zeros(m, np.bool_)
-    jac = np.zeros((m, 4))
-    res = np.full(m, np.inf)
-    for i in range(m):
-        n = 0
-        sx = sy = su = sv = 0.0
-        for q in range(k):
-            j = nb[i, q]
-            if near[i, q] and corr[j] >= 0:
-                n += 1
-                sx += P[j, 0] - P[i, 0]
-                sy += P[j, 1] - P[i, 1]
-                su += pts[corr[j], 0] - B[j, 0]
-                sv += pts[corr[j], 1] - B[j, 1]
-        if n < min_fit:
-            continue
-        mx, my, mu, mv = sx / n, sy / n, su / n, sv / n
-        cxx = cxy = cyy = cux = cuy = cvx = cvy = 0.0
-        for q in range(k):
-            j = nb[i, q]
-            if near[i, q] and corr[j] >= 0:
-                x = P[j, 0] - P[i, 0] - mx
-                y = P[j, 1] - P[i, 1] - my
-                u = pts[corr[j], 0] - B[j, 0] - mu
-                v = pts[corr[j], 1] - B[j, 1] - mv
-                cxx += x * x
-                cxy += x * y
-                cyy += y * y
-                cux += u * x
-                cuy += u * y
-                cvx += v * x
-                cvy += v * y
-        tr = (cxx + cyy) / n
-        det = (cxx * cyy - cxy * cxy) / (n * n)
-        lmin = 0.5 * tr - math.sqrt(max(0.25 * tr * tr - det, 0.0))
-        s = spread * s_prev[i]
-        if lmin < s * s:
-            continue
-        d = cxx * cyy - cxy * cxy
-        # motion = mean + B (X - mean X), B = [[cux, cuy], [cvx, cvy]] C^-1
-        b00 = (cux * cyy - cuy * cxy) / d
-        b01 = (cuy * cxx - cux * cxy) / d
-        b10 = (cvx * cyy - cvy * cxy) / d
-        b11 = (cvy * cxx - cvx * cxy) / d
-        lim = max_residual * s_prev[i]
-        good = True
-        worst = 0.0
-        for q in range(k):
-            j = nb[i, q]
-            if near[i, q] and corr[j] >= 0:
-                x = P[j, 0] - P[i, 0] - mx
-                y = P[j, 1] - P[i, 1] - my
-                ru = pts[corr[j], 0] - B[j, 0] - (mu + b00 * x + b01 * y)
-                rv = pts[corr[j], 1] - B[j, 1] - (mv + b10 * x + b11 * y)
-                if ru * ru + rv * rv > lim * lim:
-                    good = False
-                    break
-                worst = max(worst, ru * ru + rv * rv)
-        if not good:
-            continue
-        ok[i] = True
-        res[i] = math.sqrt(worst) / s_prev[i]
-        pred[i, 0] = B[i, 0] + mu - b00 * mx - b01 * my
-        pred[i, 1] = B[i, 1] + mv - b10 * mx - b11 * my
-        jac[i, 0] = 1.0 + b00
-        jac[i, 1] = b01
-        jac[i, 2] = b10
-        jac[i, 3] = 1.0 + b11
-    return pred, ok, jac, res
-
-
 def _neighbourhoods(P: np.ndarray):
     """Each previous marker's fit neighbourhood (markers at ``P`` (M, 2)): up to :data:`F2F_NEIGHBOURS`
     nearest other markers within :data:`F2F_RADIUS` local spacings, its first shell
@@ -253,35 +166,40 @@ def _neighbourhoods(P: np.ndarray):
     return nb, near, near & first, s_prev
 
 
-def _fit(P, pts, nb, near, shell, corr, s_prev, B, far=None):
+def _fit(P, pts, nb, near, shell, corr, s_prev, B, far=None, design=None):
     """:func:`_predict` under the frame-to-frame tests, over the whole neighbourhood ``near`` and,
     where that fit is refused, over the first ``shell`` alone (:data:`F2F_SHELL`); where both are
     refused, for the markers ``far`` (those whose start found their blob: the fit then only confirms a
     correspondence, never carries one into a region the start did not reach), over the nearest followed
-    markers (:func:`_fit_followed`)."""
+    markers in the image (:data:`F2F_FOLLOWED_REACH`) and then, with ``design`` ((M, 2) the markers'
+    design x-y, design pitch), in the design (:data:`F2F_DESIGN_REACH`)."""
     pred, ok, jac, res = _predict(P, pts, nb, near, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
     if not ok.all():
         p1, ok1, j1, r1 = _predict(P, pts, nb, shell, corr, s_prev, F2F_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
         ok1 &= ~ok
         pred[ok1], jac[ok1], res[ok1] = p1[ok1], j1[ok1], r1[ok1]
         ok = ok | ok1
-    if far is not None and (far & ~ok).any():
-        p2, ok2, j2, r2 = _fit_followed(P, pts, corr, s_prev, B, far & ~ok)
+    wider = [] if far is None else [(P, F2F_FOLLOWED_REACH * np.median(s_prev[np.isfinite(s_prev)]))]
+    if far is not None and design is not None:
+        wider.append((design[0], F2F_DESIGN_REACH * design[1]))
+    for space, reach in wider:
+        if not (far & ~ok).any():
+            break
+        p2, ok2, j2, r2 = _fit_nearest(P, pts, corr, s_prev, B, far & ~ok, space, reach)
         pred[ok2], jac[ok2], res[ok2] = p2[ok2], j2[ok2], r2[ok2]
         ok = ok | ok2
     return pred, ok, jac, res
 
 
-def _fit_followed(P, pts, corr, s_prev, B, which):
+def _fit_nearest(P, pts, corr, s_prev, B, which, space, reach):
     """:func:`_predict` for the markers ``which`` from their :data:`F2F_NEIGHBOURS` nearest markers that
-    have a correspondence, within :data:`F2F_FOLLOWED_REACH` median spacings, at least
-    :data:`F2F_FOLLOWED_MIN_FIT` of them (same spread and residual tests)."""
+    have a correspondence, nearest and within ``reach`` in ``space`` (M, 2): the image (``P``) or the
+    design; at least :data:`F2F_FOLLOWED_MIN_FIT` of them (same spread and residual tests)."""
     has = np.flatnonzero(corr >= 0)
     if len(has) < F2F_FOLLOWED_MIN_FIT + 1:
         return P, np.zeros(len(P), bool), np.zeros((len(P), 4)), np.full(len(P), np.inf)
-    d, j = cKDTree(P[has]).query(P, k=min(F2F_NEIGHBOURS + 1, len(has)))
+    d, j = cKDTree(space[has]).query(space, k=min(F2F_NEIGHBOURS + 1, len(has)))
     nb = np.ascontiguousarray(has[j], dtype=np.int64)
-    reach = F2F_FOLLOWED_REACH * np.median(s_prev[np.isfinite(s_prev)])
     near = (nb != np.arange(len(P))[:, None]) & (d <= reach) & which[:, None]
     pred, ok, jac, res = _predict(P, pts, nb, near, corr, s_prev, F2F_FOLLOWED_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
     return pred, ok & which, jac, res
@@ -351,7 +269,8 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     ``design_nbr`` (slots, K): each design slot's immediate design neighbours (-1 padded); a marker
     with one of them missing from ``prev_ids`` gets the gate :data:`F2F_GATE_ALONE`, unless (with
     ``design_xy`` (slots, 2), the design's x-y) each such neighbour has a blob of its own now
-    (:func:`~pipeline.vision.identity.apart.lost_neighbours_apart`)."""
+    (:func:`~pipeline.vision.identity.apart.lost_neighbours_apart`); the design x-y also gives the fit from
+    the nearest followed markers in the design (:data:`F2F_DESIGN_REACH`)."""
     n, m = len(pts), len(prev_ids)
     out = np.full(n, -1, np.int64)
     if n < F2F_MIN_FIT + 1 or m < F2F_MIN_FIT + 1:
@@ -371,6 +290,9 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
         alone = ~known[design_nbr[prev_ids]].all(axis=1)
         gate[alone] = F2F_GATE_ALONE
     apart = alone if design_xy is not None else np.zeros(m, bool)
+    design = None
+    if design_xy is not None and len(design_xy) > 1:
+        design = (np.asarray(design_xy, np.float64)[prev_ids], float(np.median(_nn_dist(cKDTree(design_xy), design_xy))))
 
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
@@ -378,7 +300,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     started = corr >= 0
     moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
-        pred, ok, jac, res = _fit(P, pts, nb, near, shell, corr, s_prev, P, started)
+        pred, ok, jac, res = _fit(P, pts, nb, near, shell, corr, s_prev, P, started, design)
         g = gate
         if apart.any():
             g = gate.copy()
@@ -388,7 +310,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
             # the crests faster frame by frame), its change from the last frame's still is: the
             # neighbours' departures from their last velocity, fitted the same way, move the
             # marker on from where its own last velocity puts it
-            pv, okv, _, rv = _fit(P, pts, nb, near, shell, np.where(moving, corr, -1), s_prev, E, started)
+            pv, okv, _, rv = _fit(P, pts, nb, near, shell, np.where(moving, corr, -1), s_prev, E, started, design)
             okv &= moving
             if start_at_previous:
                 # a guessed velocity (the motion from rest; a sequence may start pressed and held)
