@@ -180,7 +180,7 @@ class DTRCTracker:
         self._before: list | None = None
         self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
         self._lost: list = [_NONE] * 2  # per view: where the latest frame's unidentified markers were carried
-        self._places_before: list = [_NONE] * 2  # per view: the frame before's certified and carried places
+        self._certified_before: list = [_NONE] * 2  # per view: the markers certified in the frame before the latest
         self._frames = 0              # frames committed since the start (or the last reset)
 
     def code_view(self, view: int, blobs: Blobs) -> tuple[RingCoding, bool]:
@@ -220,8 +220,11 @@ class DTRCTracker:
             lat = lattice_of(self.design)
             was = ([(np.vstack([p[0], q[0]]), np.concatenate([p[1], q[1]])) for p, q in zip(self._previous, self._lost)]
                    if self._previous is not None else [_NONE] * 2)
-            self._lost = [carry_lost(w, c, lat.xy, lat.nbr, b) for w, c, b in zip(was, certified, self._places_before)]
-            self._places_before = was
+            # velocities against certified places only: the velocity between two carried places (two estimates)
+            # once extrapolated a lost marker's place 0.37 local spacings off, onto a spurious blob that the
+            # next frame's re-acquisition then took (hexagon217_sep180, pi/5 sine, 5 mm)
+            self._lost = [carry_lost(w, c, lat.xy, lat.nbr, b) for w, c, b in zip(was, certified, self._certified_before)]
+            self._certified_before = self._previous if self._previous is not None else [_NONE] * 2
         self._previous = certified
         self._frames += 1
         return _pair(left, right, lc, rc, _marker_count(self.design))
@@ -243,7 +246,7 @@ class DTRCTracker:
         self.last_codings = None
         self._frames = 0
         self._lost = [_NONE] * 2
-        self._places_before = [_NONE] * 2
+        self._certified_before = [_NONE] * 2
         self._previous = None
         self._before = None
         self._older = []
