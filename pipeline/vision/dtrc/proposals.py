@@ -190,7 +190,8 @@ def _with_frame_to_frame(previous, pts: np.ndarray, ids: np.ndarray, rule_ids: n
     whatever this frame's rule reads differently (a rule misled by crowding keeps disagreeing with
     the markers' continuous motion), instead of letting the rule's reading stand alone."""
     expected = expected_positions(*previous) if len(previous) == 4 else None
-    t = frame_to_frame(previous[0], previous[1], pts, expected, lat.nbr, lat.xy, start_at_previous=rest_before)
+    t = frame_to_frame(previous[0], previous[1], pts, expected, lat.nbr, lat.xy, start_at_previous=rest_before,
+                       design_pitch=lat.pitch)
     ids, reason = ids.copy(), reason.copy()
     followed = None
     if (t >= 0).any():

@@ -180,7 +180,6 @@ class DTRCTracker:
         self._before: list | None = None
         self._older: list = []        # per earlier frame (most recent first): [(xy, ids) left, (xy, ids) right]
         self._lost: list = [_NONE] * 2  # per view: where the latest frame's unidentified markers were carried
-        self._certified_before: list = [_NONE] * 2  # per view: the markers certified in the frame before the latest
         self._frames = 0              # frames committed since the start (or the last reset)
 
     def code_view(self, view: int, blobs: Blobs) -> tuple[RingCoding, bool]:
@@ -212,6 +211,7 @@ class DTRCTracker:
         (lc, lrest), (rc, rrest) = codings
         self.read_from_rest = lrest or rrest
         self.last_codings = (lc, rc)
+        two_back = self._before if self._before is not None else [_NONE] * 2   # certified in the frame before the latest
         if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
             self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
         self._before = self._previous if self._previous is not None else [_NONE] * 2
@@ -223,8 +223,7 @@ class DTRCTracker:
             # velocities against certified places only: the velocity between two carried places (two estimates)
             # once extrapolated a lost marker's place 0.37 local spacings off, onto a spurious blob that the
             # next frame's re-acquisition then took (hexagon217_sep180, pi/5 sine, 5 mm)
-            self._lost = [carry_lost(w, c, lat.xy, lat.nbr, b) for w, c, b in zip(was, certified, self._certified_before)]
-            self._certified_before = self._previous if self._previous is not None else [_NONE] * 2
+            self._lost = [carry_lost(w, c, lat.xy, lat.nbr, b) for w, c, b in zip(was, certified, two_back)]
         self._previous = certified
         self._frames += 1
         return _pair(left, right, lc, rc, _marker_count(self.design))
@@ -246,7 +245,6 @@ class DTRCTracker:
         self.last_codings = None
         self._frames = 0
         self._lost = [_NONE] * 2
-        self._certified_before = [_NONE] * 2
         self._previous = None
         self._before = None
         self._older = []

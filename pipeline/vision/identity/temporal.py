@@ -179,8 +179,10 @@ def _fit(P, pts, nb, near, shell, corr, s_prev, B, far=None, design=None):
         ok1 &= ~ok
         pred[ok1], jac[ok1], res[ok1] = p1[ok1], j1[ok1], r1[ok1]
         ok = ok | ok1
-    wider = [] if far is None else [(P, F2F_FOLLOWED_REACH * np.median(s_prev[np.isfinite(s_prev)]))]
-    if far is not None and design is not None:
+    if far is None:
+        return pred, ok, jac, res
+    wider = [(P, F2F_FOLLOWED_REACH * np.median(s_prev[np.isfinite(s_prev)]))]
+    if design is not None:
         wider.append((design[0], F2F_DESIGN_REACH * design[1]))
     for space, reach in wider:
         if not (far & ~ok).any():
@@ -256,7 +258,7 @@ def _assign_mutual(out: np.ndarray, idx: np.ndarray, j1: np.ndarray, d1: np.ndar
 
 def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, expected: np.ndarray | None = None,
                    design_nbr: np.ndarray | None = None, design_xy: np.ndarray | None = None,
-                   start_at_previous: bool = False) -> np.ndarray:
+                   start_at_previous: bool = False, design_pitch: float | None = None) -> np.ndarray:
     """Ids of the previous frame's certified markers (``prev_xy`` (M, 2) px, ``prev_ids`` (M,)) that the
     frame-to-frame map certifies on the current blobs ``pts`` (n, 2); -1 elsewhere (see the module
     notes). The previous ids are taken as right: what this certifies is only which blob each became.
@@ -270,7 +272,9 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     with one of them missing from ``prev_ids`` gets the gate :data:`F2F_GATE_ALONE`, unless (with
     ``design_xy`` (slots, 2), the design's x-y) each such neighbour has a blob of its own now
     (:func:`~pipeline.vision.identity.apart.lost_neighbours_apart`); the design x-y also gives the fit from
-    the nearest followed markers in the design (:data:`F2F_DESIGN_REACH`)."""
+    the nearest followed markers in the design (:data:`F2F_DESIGN_REACH`), in units of ``design_pitch`` (the
+    design's median nearest-neighbour distance, the lattice's ``pitch``; computed from ``design_xy`` when not
+    given)."""
     n, m = len(pts), len(prev_ids)
     out = np.full(n, -1, np.int64)
     if n < F2F_MIN_FIT + 1 or m < F2F_MIN_FIT + 1:
@@ -292,7 +296,9 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     apart = alone if design_xy is not None else np.zeros(m, bool)
     design = None
     if design_xy is not None and len(design_xy) > 1:
-        design = (np.asarray(design_xy, np.float64)[prev_ids], float(np.median(_nn_dist(cKDTree(design_xy), design_xy))))
+        if design_pitch is None:
+            design_pitch = float(np.median(_nn_dist(cKDTree(design_xy), design_xy)))
+        design = (np.asarray(design_xy, np.float64)[prev_ids], design_pitch)
 
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
