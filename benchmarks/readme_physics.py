@@ -152,8 +152,12 @@ def _convergence_row(conv: list[dict], production_mm: float, tol_mm: float) -> t
     target = (f"production ({production_mm:g} mm) within {tol_mm:g} mm of the finest on markers, differences "
               "shrinking")
     force = [f"{(c['force_n'] - finest['force_n']) / finest['force_n']:+.0%}".replace("%", " %") for c in others]
-    measured = (f"markers {' / '.join(_mm(d) for d in diffs)} mm, force {' / '.join(force)}, face-level penetration "
-                + " / ".join(_mm(c["penetration_max_mm"]) for c in conv) + " mm")
+    measured = f"markers {' / '.join(_mm(d) for d in diffs)} mm"
+    if all("pin_base_diff_vs_finest_mm" in c for c in others):     # records before the split have the sum only
+        measured += (f" (pin bases {' / '.join(_mm(c['pin_base_diff_vs_finest_mm']) for c in others)} mm, pin tilt "
+                     f"× height {' / '.join(_mm(c['pin_tilt_diff_vs_finest_mm']) for c in others)} mm)")
+    measured += (f", force {' / '.join(force)}, face-level penetration "
+                 + " / ".join(_mm(c["penetration_max_mm"]) for c in conv) + " mm")
     if len(others) < 2:
         measured += " (one resolution besides the finest: shrinking is not tested)"
     converged = prod["marker_diff_vs_finest_mm"] <= tol_mm

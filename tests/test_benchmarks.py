@@ -707,6 +707,12 @@ def test_physics_checks_block_decides_each_verdict_from_the_record():
         "shrinking, converged")
     assert verdicts(_physics_record((0.02, 0.05), 0.0))["mesh convergence, the design at 2 mm"][1] == \
         "**not shrinking**, **not converged**"
+    split = _physics_record((0.05, 0.02), 0.0)                # a record that splits markers into pin bases and tilt
+    for c, base, tilt in zip(split["tables"]["convergence"], (0.045, 0.018, 0.0), (0.02, 0.011, 0.0)):
+        c.update(pin_base_diff_vs_finest_mm=base, pin_tilt_diff_vs_finest_mm=tilt)
+    assert verdicts(split)["mesh convergence, the design at 2 mm"][0] == (
+        "markers 0.05 / 0.02 mm (pin bases 0.045 / 0.018 mm, pin tilt × height 0.02 / 0.011 mm), force +2 % / +1 %, "
+        "face-level penetration 0.05 / 0.05 / 0.05 mm")
     assert verdicts(_physics_record((0.05,), 0.0))["mesh convergence, the design at 2 mm"][1] == \
         "**not converged**"                                # production only, vs the finest: nothing to shrink
     rec = _physics_record((0.05, 0.02), 0.0)

@@ -16,8 +16,9 @@ A rigid sphere (radius ``R``) is pressed 0.25-3 mm into the skin module on the s
   mirrored split, face contact; the Gaussian experiment's and the demo's), and beside it on the 1.5 mm mesh of
   the default ``MeshSpec()`` (every cell split along the same diagonal) and that mesh split mirrored.
 * **Mesh convergence**: the design pressed at one depth on three in-plane resolutions (with the finest
-  also refined through the gel): force, peak marker displacement, marker positions vs the finest, and
-  conformity (the frame's face-level penetration, :mod:`twin.validity`).
+  also refined through the gel): force, peak marker displacement, marker positions vs the finest (and which
+  part differs: the pins' bases, where the displacement field carries the skin's underside, or their tilt),
+  and conformity (the frame's face-level penetration, :mod:`twin.validity`).
 
 Materials: E and ν from the design file (``sim_assets/designs``; sources in ``twin/materials.py``).
 
@@ -141,8 +142,8 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
         "contact_radius_ratio_uniform_nodal_median": "1", "design_force_3mm_n_nodal": "N",
         "centre_marker_lateral_mm_nodal": "mm", "mirror_disagreement_max_mm_nodal": "mm",
         "press_s_nodal_median": "s", "settle_steps_nodal_max": "1", "force_spread_rel_max": "1",
-        "convergence_marker_max_mm": "mm", "convergence_force_rel": "1", "penetration_max_mm": "mm",
-        "invalid_frames": "1", "press_s_median": "s",
+        "convergence_marker_max_mm": "mm", "convergence_force_rel": "1", "convergence_pin_base_max_mm": "mm",
+        "convergence_pin_tilt_max_mm": "mm", "penetration_max_mm": "mm", "invalid_frames": "1", "press_s_median": "s",
     },
     requires=("twin.physics", "twin.robot", "twin.indenters"),
 )
@@ -325,11 +326,17 @@ def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
         conv.append({"fine_mm": fine, "gel_levels_mm": list(levels), "depth_mm": conv_depth, "dofs": int(sim.model.nv),
                      "force_n": f,
                      "peak_marker_dz_mm": float(-dz.min()), "penetration_max_mm": tr.validity["penetration_max_mm"],
-                     "seconds": secs, "markers": tr.marker_xyz_mm, "validity": tr.validity})
+                     "seconds": secs, "markers": tr.marker_xyz_mm, "axes": tr.marker_axis, "validity": tr.validity})
         bar.update()
     finest = conv[-1]
+    H = design.pins.height_mm
     for c in conv:
         c["marker_diff_vs_finest_mm"] = float(np.max(np.linalg.norm(c["markers"] - finest["markers"], axis=1)))
+        # a marker is its pin's base (the skin's underside, carried by the displacement field) plus H along the
+        # pin's axis (its tilt, from the skin's local rotation): which of the two differs between the meshes
+        base, base_f = c["markers"] - H * c["axes"], finest["markers"] - H * finest["axes"]
+        c["pin_base_diff_vs_finest_mm"] = float(np.max(np.linalg.norm(base - base_f, axis=1)))
+        c["pin_tilt_diff_vs_finest_mm"] = float(H * np.max(np.linalg.norm(c["axes"] - finest["axes"], axis=1)))
         c["force_rel_vs_finest"] = abs(c["force_n"] - finest["force_n"]) / finest["force_n"]
     return conv
 
@@ -340,12 +347,14 @@ def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict]) -> dict:
     prod = next((c for c in conv if c["fine_mm"] == PRODUCTION_FINE_MM), conv[0])
     out.metric("convergence_marker_max_mm", prod["marker_diff_vs_finest_mm"], "mm")
     out.metric("convergence_force_rel", prod["force_rel_vs_finest"], "1")
+    out.metric("convergence_pin_base_max_mm", prod["pin_base_diff_vs_finest_mm"], "mm")
+    out.metric("convergence_pin_tilt_max_mm", prod["pin_tilt_diff_vs_finest_mm"], "mm")
     out.metric("penetration_max_mm", float(max(v["penetration_max_mm"] for v in frames)), "mm")
     out.metric("invalid_frames", float(sum(not v["valid"] for v in frames)), "1")
     out.metric("press_s_median", float(np.median(fd.times)), "s")
     out.tables["force_depth"] = fd.rows
     out.tables["cases"] = fd.cases
-    out.tables["convergence"] = [{k: v for k, v in c.items() if k not in ("markers", "validity")} for c in conv]
+    out.tables["convergence"] = [{k: v for k, v in c.items() if k not in ("markers", "axes", "validity")} for c in conv]
     return prod
 
 
@@ -432,6 +441,8 @@ def _plot(ctx: Context, cases: list[_Case], rows: list[dict], conv: list[dict], 
         ax[1].legend(fontsize=5)
         ax[2].plot([c["fine_mm"] for c in conv], [c["marker_diff_vs_finest_mm"] for c in conv], "o-", ms=3,
                    label="markers vs finest (mm)")
+        ax[2].plot([c["fine_mm"] for c in conv], [c["pin_base_diff_vs_finest_mm"] for c in conv], "^--", ms=3,
+                   label="pin bases vs finest (mm)")
         ax[2].plot([c["fine_mm"] for c in conv], [c["force_rel_vs_finest"] for c in conv], "s-", ms=3,
                    label="|force| rel. vs finest")
         ax[2].invert_xaxis()
