@@ -218,6 +218,24 @@ def test_thicker_skin_conforms_less_to_a_sharp_gaussian():
     assert sep["hexagon127_skin050"] < sep["hexagon127_skin150"] - 0.05, sep
 
 
+def test_mujoco_arena_grows_with_the_square_of_the_mesh(monkeypatch):
+    """MuJoCo's arena is sized from the mesh (``twin.model.arena_bytes``): its peak use per step grows with the
+    square of the node count, and a fixed 256 MB stopped the 0.75 mm mesh (20,770 nodes) in mj_collision. With
+    the floor taken away, the per-node² size alone holds a 1 mm sphere press on a mesh refined over the whole
+    pattern with two skin layers (4,869 nodes, ~25 MB used), with room to spare."""
+    from twin import model as _model
+
+    monkeypatch.setattr(_model, "ARENA_MIN_BYTES", 0)
+    spec = MeshSpec(fine_mm=1.5, fine_half_mm=16.0, skin_layers=2, gel_levels_mm=(0.75, 1.5, 2.5, 4.0, 6.0))
+    sim = SkinSim(load_design("hexagon127"), make_indenter("sphere", radius_mm=10.0), mesh=spec, friction=0.0)
+    assert sim.model.narena == pytest.approx(_model.ARENA_BYTES_PER_NODE2 * len(sim.mesh.nodes_mm) ** 2, rel=1e-3)
+    assert sim.model.narena < _model.arena_bytes(10_000) == _model.ARENA_BYTES_PER_NODE2 * 10_000 ** 2
+    sim.set_pose(0.0, 0.0, 1.0, 0.0)
+    sim.step(3)
+    assert sim.data.ncon > 0
+    assert sim.data.maxuse_arena <= 0.6 * sim.model.narena
+
+
 def test_depth_limit_is_enforced():
     d = load_design("hexagon127")
     sim = SkinSim(d, make_indenter("flat"), mesh=COARSE, friction=0.0)

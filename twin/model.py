@@ -69,6 +69,11 @@ CONTACT_DAMPRATIO = 0.7
 CONTACT_SOLIMP = [0.99, 0.999, 1e-5, 0.5, 2.0]   # impedance of contacts, the stick ties and the roller rim's limits:
                                                 # 0.99 -> 0.999 over 0.01 mm of penetration
 _FLIP = np.array([1.0, -1.0, -1.0])  # sensor <-> MuJoCo world
+ARENA_MIN_BYTES = 256 * 1024 * 1024   # MuJoCo's arena (stack + per-step data) for every mesh up to ~9,500 nodes, and ...
+ARENA_BYTES_PER_NODE2 = 3.0           # ... beyond, this many bytes per squared mesh node: the peak use per step grows with
+                                      # the square of the node count (1.1 / 1.25 / 1.35 bytes per node² at 4,869 / 10,953 /
+                                      # 20,770 nodes, 25 / 143 / 583 MB, a sphere or a sine pressed 1 mm); at the fixed
+                                      # 256 MB the 0.75 mm mesh of the convergence study stopped in mj_collision
 MODEL_CACHE_SIZE = 4         # compiled models kept per process (a press sweep re-presses one design/indenter at
                              # several yaws; compiling costs ~0.5-0.9 s of a ~3 s press, a copy ~0.01 s)
 _MODEL_CACHE: "OrderedDict[tuple, tuple]" = OrderedDict()
@@ -91,6 +96,12 @@ _BIT_FACES, _BIT_SPHERES = 4, 8
 #: Frictionless contacts in MuJoCo's sense (condim 1): friction acts through the stick constraints of twin.stick,
 #: not through MuJoCo's friction cone (soft: the skin under a tip crept back where contact mechanics says stick).
 _CONDIM = 1
+
+
+def arena_bytes(n_nodes: int) -> int:
+    """MuJoCo's memory (``<size memory>``) for a skin mesh of ``n_nodes`` nodes: ``ARENA_MIN_BYTES``, or
+    ``ARENA_BYTES_PER_NODE2`` per squared node where that is more (about 2.2-2.7x the measured peak use)."""
+    return int(max(ARENA_MIN_BYTES, ARENA_BYTES_PER_NODE2 * float(n_nodes) ** 2))
 
 
 def cache_key(design: SensorDesign, spec: MeshSpec, indenter: Indenter, timestep_s: float, friction: float):
@@ -136,7 +147,7 @@ def build(design: SensorDesign, indenter: Indenter, mesh: _Mesh, spec: MeshSpec,
     mjspec = mj.MjSpec()
     mjspec.modelname = f"skin_{design.name}"
     _set_options(mjspec.option, spec, timestep_s, friction)
-    mjspec.memory = 256 * 1024 * 1024
+    mjspec.memory = arena_bytes(len(X_m))
     is_top = np.zeros(len(X_m), bool)
     is_top[mesh.top] = True
     free = np.nonzero(~mesh.pinned)[0]
