@@ -166,6 +166,28 @@ def _convergence_row(conv: list[dict], production_mm: float, tol_mm: float) -> t
     return what, target, measured, verdict
 
 
+def _reference_row(conv: list[dict], ref: list[dict], production_mm: float, tol_mm: float) -> tuple | None:
+    """The production mesh (and the element-wise finest) against the locking-free reference family's finest."""
+    from benchmarks.experiments.physics_reference import REFERENCE_HALF_MM
+
+    if not ref or not conv or "marker_diff_vs_reference_mm" not in conv[0]:
+        return None
+    conv = sorted(conv, key=lambda c: -c["fine_mm"])
+    prod = next((c for c in conv if np.isclose(c["fine_mm"], production_mm)), conv[0])
+    finest = ref[-1]
+    what = ("the same against a locking-free refinement: " + " / ".join(f"{r['cells_mm']:g}" for r in ref)
+            + f" mm cells out to r = {REFERENCE_HALF_MM:g} mm, {finest['skin_layers']} skin "
+            + ("layers" if finest["skin_layers"] != 1 else "layer") + ", gel levels "
+            + "; ".join(_levels(r["gel_levels_mm"]) for r in ref) + " mm, nodal volumetric stiffness")
+    target = f"production ({production_mm:g} mm) within {tol_mm:g} mm of its finest on markers"
+    family = " / ".join(_mm(r["marker_diff_vs_finest_mm"]) for r in ref[:-1])
+    measured = (f"production {_mm(prod['marker_diff_vs_reference_mm'])} mm, the element-wise finest "
+                f"({conv[-1]['fine_mm']:g} mm) {_mm(conv[-1]['marker_diff_vs_reference_mm'])} mm; force "
+                f"{prod['force_n']:.2f} N against {finest['force_n']:.2f} N; the family {family} mm from its finest "
+                f"({finest['dofs']:,} DOFs, {finest['seconds']:.0f} s a press)")
+    return what, target, measured, _verdict(prod["marker_diff_vs_reference_mm"] <= tol_mm)
+
+
 def _design_row(rows: list[dict], design: Mapping[str, Any]) -> tuple | None:
     """The design's own force (no closed-form layered solution): range and ratio to the uniform-gel theory."""
     mine = [r for r in rows if r["case"] == "design"]
@@ -201,6 +223,8 @@ def physics_checks_markdown(records: Records, source: str) -> str:
     table += [r for r in (_contact_row(rows, cases, nu_gel),) if r]
     table += _symmetry_rows(rows, cases, SYMMETRY_TOL_MM)
     table += [r for r in (_convergence_row(conv, PRODUCTION_FINE_MM, CONVERGENCE_TOL_MM),
+                          _reference_row(conv, tables.get("reference_family") or [], PRODUCTION_FINE_MM,
+                                         CONVERGENCE_TOL_MM),
                           _design_row(rows, design)) if r]
     lines = [f"Contact-mechanics checks from the {_provenance(rec, source)}: a rigid sphere (R = {radius:.3g} mm) "
              f"pressed {_depths(rows)} on the axis, E_gel = {gel.get('youngs_modulus_mpa', 0) * 1000:g} "

@@ -715,6 +715,18 @@ def test_physics_checks_block_decides_each_verdict_from_the_record():
         "face-level penetration 0.05 / 0.05 / 0.05 mm")
     assert verdicts(_physics_record((0.05,), 0.0))["mesh convergence, the design at 2 mm"][1] == \
         "**not converged**"                                # production only, vs the finest: nothing to shrink
+    ref = _physics_record((0.05, 0.02), 0.0)                  # with the locking-free reference family
+    for c, d in zip(ref["tables"]["convergence"], (0.14, 0.12, 0.11)):
+        c["marker_diff_vs_reference_mm"] = d
+    ref["tables"]["reference_family"] = [
+        {"cells_mm": cm, "skin_layers": 2, "gel_levels_mm": [0.75, 1.5], "dofs": n, "force_n": f, "seconds": t,
+         "marker_diff_vs_finest_mm": d}
+        for cm, n, f, t, d in ((1.5, 10680, 1.39, 26.0, 0.1), (1.0, 25752, 1.32, 70.0, 0.04),
+                               (0.75, 50895, 1.33, 209.0, 0.0))]
+    row = verdicts(ref)["the same against a locking-free refinement"]
+    assert row == ("production 0.12 mm, the element-wise finest (1 mm) 0.11 mm; force 2.02 N against 1.33 N; the "
+                   "family 0.1 / 0.04 mm from its finest (50,895 DOFs, 209 s a press)", "**not met**")
+    assert "the same against a locking-free refinement" not in verdicts(_physics_record((0.05, 0.02), 0.0))
     rec = _physics_record((0.05, 0.02), 0.0)
     del rec["tables"]["cases"]
     with pytest.raises(res.ResultsError, match="no force_depth and cases tables"):

@@ -35,6 +35,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from benchmarks.experiments.physics_reference import REFERENCE_FAMILY, reference_family
+from benchmarks.experiments.physics_reference import report as report_reference
 from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
 
@@ -143,7 +145,9 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
         "centre_marker_lateral_mm_nodal": "mm", "mirror_disagreement_max_mm_nodal": "mm",
         "press_s_nodal_median": "s", "settle_steps_nodal_max": "1", "force_spread_rel_max": "1",
         "convergence_marker_max_mm": "mm", "convergence_force_rel": "1", "convergence_pin_base_max_mm": "mm",
-        "convergence_pin_tilt_max_mm": "mm", "penetration_max_mm": "mm", "invalid_frames": "1", "press_s_median": "s",
+        "convergence_pin_tilt_max_mm": "mm", "convergence_marker_vs_reference_mm": "mm",
+        "convergence_finest_vs_reference_mm": "mm", "reference_marker_diff_mm": "mm", "reference_force_n": "N",
+        "penetration_max_mm": "mm", "invalid_frames": "1", "press_s_median": "s",
     },
     requires=("twin.physics", "twin.robot", "twin.indenters"),
 )
@@ -156,13 +160,15 @@ def run(ctx: Context) -> Result:
     out = Result(designs=[design])
     layer = _Layer.of(design)
     cases = _cases(design)
-    bar = ctx.bar(total=len(cases) + len(resolutions), desc="physics")
+    family = ctx.param("reference_family", REFERENCE_FAMILY, quick=())   # full runs: ~6 min more
+    bar = ctx.bar(total=len(cases) + len(resolutions) + len(family), desc="physics")
     fd = _force_depth(cases, depths, layer, bar)
     sym = _report_force_depth(out, fd)
     conv = _convergence(design, resolutions, conv_depth, bar)
+    ref = reference_family(design, family, conv_depth, _press_series, bar) if family else []
     bar.close()
-    prod = _report_convergence(out, fd, conv)
-    _findings(out, layer, fd.rows, conv, prod, sym)
+    prod = _report_convergence(out, fd, conv, ref)
+    _findings(out, layer, fd.rows, conv, prod, sym, ref)
     _notes(out, layer)
     out.figures.append(_plot(ctx, cases, fd.rows, conv, layer, depths))
     return out
@@ -341,10 +347,13 @@ def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
     return conv
 
 
-def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict]) -> dict:
-    """Convergence and frame-health metrics and both tables; returns the production mesh's convergence row."""
+def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict], ref: list[dict]) -> dict:
+    """Convergence (and, with ``ref``, the reference family's) and frame-health metrics and the tables; returns
+    the production mesh's convergence row."""
     frames = fd.frames + [c["validity"] for c in conv]
     prod = next((c for c in conv if c["fine_mm"] == PRODUCTION_FINE_MM), conv[0])
+    if ref:
+        report_reference(out, conv, prod, ref)
     out.metric("convergence_marker_max_mm", prod["marker_diff_vs_finest_mm"], "mm")
     out.metric("convergence_force_rel", prod["force_rel_vs_finest"], "1")
     out.metric("convergence_pin_base_max_mm", prod["pin_base_diff_vs_finest_mm"], "mm")
@@ -358,7 +367,8 @@ def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict]) -> dict:
     return prod
 
 
-def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], prod: dict, sym: _Symmetry) -> None:
+def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], prod: dict, sym: _Symmetry,
+              ref: list[dict]) -> None:
     """The layer solution, symmetry and mesh-convergence claims, decided by this run's metrics."""
     m = {k: v[0] for k, v in out.metrics.items()}
     ratio = m["force_ratio_uniform_median"]
@@ -403,6 +413,16 @@ def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], pr
             ", ".join(f"{c['fine_mm']:g} mm: markers {c['marker_diff_vs_finest_mm']:.3f} mm, force "
                       f"{c['force_rel_vs_finest']:+.1%}" for c in conv[:-1]) + f" (vs {finest['fine_mm']:g} mm)",
             bool(diffs == sorted(diffs, reverse=True) and prod["marker_diff_vs_finest_mm"] <= CONVERGENCE_TOL_MM)))
+    if ref:
+        m = {k: v[0] for k, v in out.metrics.items()}
+        out.findings.append(Finding(
+            f"the production mesh is within {CONVERGENCE_TOL_MM} mm of a locking-free refinement on marker positions",
+            f"{m['convergence_marker_vs_reference_mm']:.3f} mm from {ref[-1]['cells_mm']:g} mm cells with "
+            f"{ref[-1]['skin_layers']} skin layer{'s' if ref[-1]['skin_layers'] != 1 else ''} and nodal volumetric "
+            f"stiffness (force {prod['force_n']:.2f} against "
+            f"{ref[-1]['force_n']:.2f} N); the element-wise finest {m['convergence_finest_vs_reference_mm']:.3f} mm; "
+            "the family " + " / ".join(f"{r['marker_diff_vs_finest_mm']:.3f}" for r in ref[:-1]) + " mm from its finest",
+            bool(m["convergence_marker_vs_reference_mm"] <= CONVERGENCE_TOL_MM)))
 
 
 def _notes(out: Result, layer: _Layer) -> None:
