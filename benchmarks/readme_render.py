@@ -231,6 +231,7 @@ _CONDITION_LABELS = {
     "occlusion_15_rest": "the same patch in a first frame read from rest (±2°)",
     "jitter_30": "centre jitter 0.3 separations", "rotation_30": "turned ±30°",
     "press_stereo": "Gaussian press 1–5 mm, stereo, 3 % + 3 % per view",
+    "press_first_frame": "the same press read as a sequence's first frame (ring coding, the rest pattern, ±2°)",
     "twin_sequence": "the twin's presses from rest, frame by frame, stereo, 3 % + 3 % per view and frame",
 }
 _DESIGN_LABELS = {"hexagon61_sep354": "hex 61", "hexagon127": "hex 127", "hexagon217_sep180": "hex 217",

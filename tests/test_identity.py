@@ -161,6 +161,37 @@ def test_no_wrong_pair_in_pressed_stereo_views_with_different_defects(name, seed
     assert rec["wrong"] == 0
 
 
+@settings(derandomize=True, database=None, max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(name=designs, seed=seeds)
+def test_no_wrong_pair_in_a_pressed_first_frame_read_as_the_runner_reads_it(name, seed):
+    design = DESIGNS[name]
+    rec = run_trial(design, "press_first_frame", np.random.default_rng(seed), nominal_calibration(design))
+    assert rec["wrong"] == 0
+
+
+def test_a_pressed_circular_first_frame_is_read_from_the_rest_pattern_where_ring_coding_reads_nothing():
+    """circular217 pressed 5 mm by a sigma 3 mm Gaussian off the axis (0.2 lateral bulge, 3 % + 3 % defects a view):
+    ring coding anchors a circular pattern by its first three rings, which the press bends beyond its gates, and
+    pairs none of the 203 markers present in both views; the runner reading it as a sequence's first frame (the
+    rest pattern where ring coding leaves a view short, then the stereo check) pairs 192, none wrong."""
+    from benchmarks.experiments.identification import score_pairs, stereo_views_with_defects
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import gaussian_press_markers
+    from pipeline.runner import Reconstructor
+
+    design = DESIGNS["circular217_dome"]
+    calib = nominal_calibration(design)
+    rng = np.random.default_rng(0)
+    centre = (float(rng.uniform(-3, 3)), float(rng.uniform(-3, 3)))
+    xyz = gaussian_press_markers(design, 5.0, sigma_mm=3.0, centre_xy_mm=centre, lateral=0.2)
+    sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, 0.03)
+    left, right = _blobs(sides[0][0]), _blobs(sides[1][0])
+    ring = score_pairs(match_stereo(left, right, design), sides)
+    first = score_pairs(Reconstructor(design, calib, view_threads=1).identify(left, right), sides)
+    assert ring["correct"] == ring["wrong"] == 0 and first["present"] == 203
+    assert first["wrong"] == 0 and first["correct"] >= 0.9 * first["present"]
+
+
 @pytest.mark.parametrize("name", ["hexagon127", "square121", "circular217_dome"])
 def test_a_reading_shifted_along_the_lattice_or_turned_past_the_limit_is_withdrawn(name):
     """Locally perfect but globally wrong readings: the true reading moved by one ring-1 step (a
