@@ -169,6 +169,34 @@ def test_no_wrong_pair_in_a_pressed_first_frame_read_as_the_runner_reads_it(name
     assert rec["wrong"] == 0
 
 
+# trial 956 of the benchmark's circular217_dome press_first_frame stream (seed 0): the generator's state before it
+_AMBIGUOUS_SLOT_TRIAL = {"bit_generator": "PCG64", "state": {"state": 334678701277411116790805303987063991864,
+                                                             "inc": 230820474182415846913427658499246408031},
+                         "has_uint32": 1, "uinteger": 90625060}
+
+
+def test_a_first_frame_read_from_rest_leaves_open_what_ring_coding_found_ambiguous(monkeypatch):
+    """circular217 pressed 4.4 mm (sigma 3.8 mm, 3.3 mm off the axis): in the right view ring coding leaves marker
+    166 open, a spurious blob standing 0.33 separations from it ("two blobs near its predicted position"). The
+    reading from the rest pattern, which extends ring coding's, must not settle that slot: it gave the spurious
+    blob the id, and the stereo check kept the pair with the left view's marker 166."""
+    import importlib
+
+    tracking = importlib.import_module("pipeline.vision.dtrc.tracking")
+    design = DESIGNS["circular217_dome"]
+    calib = nominal_calibration(design)
+
+    def trial():
+        rng = np.random.default_rng()
+        rng.bit_generator.state = _AMBIGUOUS_SLOT_TRIAL
+        return run_trial(design, "press_first_frame", rng, calib)
+
+    rec = trial()
+    assert rec["wrong"] == 0 and rec["correct"] >= 200 and rec["present"] == 203
+    monkeypatch.setattr(tracking, "_keep_ambiguous", lambda coding, again: again)
+    assert trial()["wrong"] == 1
+
+
 def test_a_pressed_circular_first_frame_is_read_from_the_rest_pattern_where_ring_coding_reads_nothing():
     """circular217 pressed 5 mm by a sigma 3 mm Gaussian off the axis (0.2 lateral bulge, 3 % + 3 % defects a view):
     ring coding anchors a circular pattern by its first three rings, which the press bends beyond its gates, and

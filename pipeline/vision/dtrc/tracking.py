@@ -5,6 +5,7 @@ paper's KNN baseline."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numba
 import numpy as np
@@ -14,7 +15,8 @@ from pipeline.design import SensorDesign
 from pipeline.types import Blobs, MarkerMatches
 from pipeline.vision.dtrc.coding import RingCoding, code_rings
 from pipeline.vision.dtrc.ring_codes import _marker_count
-from pipeline.vision.identity import lattice_of
+from pipeline.vision.identity import REASONS, lattice_of
+from pipeline.vision.identity.constants import R_AMBIGUOUS
 from pipeline.vision.identity.reacquire import REACQUIRE_FRAMES, carry_lost
 
 #: A first frame's view that ring coding identifies to fewer than this fraction of its blobs (the
@@ -89,7 +91,7 @@ def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
     have = int(np.count_nonzero(coding.ids >= 0))
     if n < 4 or have >= n:
         return coding
-    again = code_rings(blobs, design, previous=(_aligned(rest[0], blobs.xy_px), rest[1]))
+    again = _keep_ambiguous(coding, code_rings(blobs, design, previous=(_aligned(rest[0], blobs.xy_px), rest[1])))
     got = int(np.count_nonzero(again.ids >= 0))
     if got < REST_BELOW * n:
         return coding
@@ -99,6 +101,28 @@ def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
     if got <= have or np.any(again.ids[coded] != coding.ids[coded]):
         return coding
     return again
+
+
+def _keep_ambiguous(coding: RingCoding, again: RingCoding) -> RingCoding:
+    """``again`` (the rest pattern's reading) without the ids ring coding left open as ambiguous: two blobs near
+    the slot's prediction from the frame's own identified neighbours. A reading from rest predicts the slot from
+    the markers' whole motion since rest, which a press makes larger and less regular: it must not settle what the
+    frame's own neighbours could not. (A circular view pressed 4.4 mm off the axis: ring coding left marker 166
+    open beside a spurious blob 0.33 separations from it; the rest reading gave the spurious blob the id, and the
+    stereo check kept the pair.)"""
+    amb = np.array([i for i, r in zip(coding.unmatched_ids.tolist(), coding.unmatched_reasons)
+                    if r == REASONS[R_AMBIGUOUS]], np.int64)
+    hit = np.isin(again.ids, amb)
+    if not np.any(hit):
+        return again
+    ids, carried = again.ids.copy(), again.carried.copy()
+    ids[hit] = -1
+    carried[np.isin(carried, amb)] = -1
+    reasons = dict(zip(again.unmatched_ids.tolist(), again.unmatched_reasons))
+    reasons.update({int(i): REASONS[R_AMBIGUOUS] for i in again.ids[hit]})
+    unmatched = np.array(sorted(reasons), np.int64)
+    return replace(again, ids=ids, carried=carried, unmatched_ids=unmatched,
+                   unmatched_reasons=tuple(reasons[int(i)] for i in unmatched))
 
 
 #: The rest pattern is brought onto a first frame by an affine map fitted to mutual nearest pairs within
