@@ -136,13 +136,18 @@ def _symmetry_rows(rows: list[dict], cases: list[dict], tol_mm: float) -> list[t
     return out
 
 
+def _production(conv: list[dict], production_mm: float) -> tuple[list[dict], dict]:
+    """The convergence rows coarsest first (the finest last) and the production mesh's row among them."""
+    conv = sorted(conv, key=lambda c: -c["fine_mm"])
+    return conv, next((c for c in conv if np.isclose(c["fine_mm"], production_mm)), conv[0])
+
+
 def _convergence_row(conv: list[dict], production_mm: float, tol_mm: float) -> tuple | None:
     """The design pressed on each resolution against the finest: markers, force and face-level penetration."""
     if len(conv) < 2:
         return None
-    conv = sorted(conv, key=lambda c: -c["fine_mm"])            # coarsest first, the finest last
+    conv, prod = _production(conv, production_mm)
     finest, others = conv[-1], conv[:-1]
-    prod = next((c for c in conv if np.isclose(c["fine_mm"], production_mm)), conv[0])
     diffs = [c["marker_diff_vs_finest_mm"] for c in others]
     shrinking = all(a >= b for a, b in zip(diffs, diffs[1:]))
     depth = f" at {finest['depth_mm']:g} mm" if "depth_mm" in finest else ""
@@ -172,8 +177,7 @@ def _reference_row(conv: list[dict], ref: list[dict], production_mm: float, tol_
 
     if not ref or not conv or "marker_diff_vs_reference_mm" not in conv[0]:
         return None
-    conv = sorted(conv, key=lambda c: -c["fine_mm"])
-    prod = next((c for c in conv if np.isclose(c["fine_mm"], production_mm)), conv[0])
+    conv, prod = _production(conv, production_mm)
     finest = ref[-1]
     what = ("the same against a locking-free refinement: " + " / ".join(f"{r['cells_mm']:g}" for r in ref)
             + f" mm cells out to r = {REFERENCE_HALF_MM:g} mm, {finest['skin_layers']} skin "

@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments.physics_reference import REFERENCE_FAMILY, reference_family
+from benchmarks.experiments.physics_reference import REFERENCE_FAMILY, marker_diff_mm, reference_family
 from benchmarks.experiments.physics_reference import report as report_reference
 from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
@@ -337,12 +337,12 @@ def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
     finest = conv[-1]
     H = design.pins.height_mm
     for c in conv:
-        c["marker_diff_vs_finest_mm"] = float(np.max(np.linalg.norm(c["markers"] - finest["markers"], axis=1)))
+        c["marker_diff_vs_finest_mm"] = marker_diff_mm(c["markers"], finest["markers"])
         # a marker is its pin's base (the skin's underside, carried by the displacement field) plus H along the
         # pin's axis (its tilt, from the skin's local rotation): which of the two differs between the meshes
-        base, base_f = c["markers"] - H * c["axes"], finest["markers"] - H * finest["axes"]
-        c["pin_base_diff_vs_finest_mm"] = float(np.max(np.linalg.norm(base - base_f, axis=1)))
-        c["pin_tilt_diff_vs_finest_mm"] = float(H * np.max(np.linalg.norm(c["axes"] - finest["axes"], axis=1)))
+        c["pin_base_diff_vs_finest_mm"] = marker_diff_mm(c["markers"] - H * c["axes"],
+                                                         finest["markers"] - H * finest["axes"])
+        c["pin_tilt_diff_vs_finest_mm"] = H * marker_diff_mm(c["axes"], finest["axes"])
         c["force_rel_vs_finest"] = abs(c["force_n"] - finest["force_n"]) / finest["force_n"]
     return conv
 
