@@ -171,8 +171,10 @@ def _convergence_row(conv: list[dict], production_mm: float, tol_mm: float) -> t
     return what, target, measured, verdict
 
 
-def _reference_row(conv: list[dict], ref: list[dict], production_mm: float, tol_mm: float) -> tuple | None:
-    """The production mesh (and the element-wise finest) against the locking-free reference family's finest."""
+def _reference_row(conv: list[dict], ref: list[dict], production_mm: float, tol_mm: float,
+                   offered: list[dict] = ()) -> tuple | None:
+    """The production mesh (and the element-wise finest, and the contact meshes the experiments press) against
+    the locking-free reference family's finest."""
     from benchmarks.experiments.physics_reference import REFERENCE_HALF_MM
 
     if not ref or not conv or "marker_diff_vs_reference_mm" not in conv[0]:
@@ -187,8 +189,14 @@ def _reference_row(conv: list[dict], ref: list[dict], production_mm: float, tol_
     family = " / ".join(_mm(r["marker_diff_vs_finest_mm"]) for r in ref[:-1])
     measured = (f"production {_mm(prod['marker_diff_vs_reference_mm'])} mm, the element-wise finest "
                 f"({conv[-1]['fine_mm']:g} mm) {_mm(conv[-1]['marker_diff_vs_reference_mm'])} mm; force "
-                f"{prod['force_n']:.2f} N against {finest['force_n']:.2f} N; the family {family} mm from its finest "
-                f"({finest['dofs']:,} DOFs, {finest['seconds']:.0f} s a press)")
+                f"{prod['force_n']:.2f} N against {finest['force_n']:.2f} N; "
+                + (f"the family {family} mm from its finest " if family else "the finest ")
+                + f"({finest['dofs']:,} DOFs, {finest['seconds']:.0f} s a press)")
+    others = [r for r in offered if r["mesh"] != "default"]
+    if others:
+        measured += "; the contact meshes " + ", ".join(
+            f"{r['mesh']} {_mm(r['marker_diff_vs_reference_mm'])} mm (RMS {_mm(r['marker_rms_vs_reference_mm'])} mm, "
+            f"{r['dofs']:,} DOFs)" for r in others)
     return what, target, measured, _verdict(prod["marker_diff_vs_reference_mm"] <= tol_mm)
 
 
@@ -228,7 +236,7 @@ def physics_checks_markdown(records: Records, source: str) -> str:
     table += _symmetry_rows(rows, cases, SYMMETRY_TOL_MM)
     table += [r for r in (_convergence_row(conv, PRODUCTION_FINE_MM, CONVERGENCE_TOL_MM),
                           _reference_row(conv, tables.get("reference_family") or [], PRODUCTION_FINE_MM,
-                                         CONVERGENCE_TOL_MM),
+                                         CONVERGENCE_TOL_MM, tables.get("reference_meshes") or []),
                           _design_row(rows, design)) if r]
     lines = [f"Contact-mechanics checks from the {_provenance(rec, source)}: a rigid sphere (R = {radius:.3g} mm) "
              f"pressed {_depths(rows)} on the axis, E_gel = {gel.get('youngs_modulus_mpa', 0) * 1000:g} "

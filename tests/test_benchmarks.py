@@ -727,6 +727,11 @@ def test_physics_checks_block_decides_each_verdict_from_the_record():
     assert row == ("production 0.12 mm, the element-wise finest (1 mm) 0.11 mm; force 2.02 N against 1.33 N; the "
                    "family 0.1 / 0.04 mm from its finest (50,895 DOFs, 209 s a press)", "**not met**")
     assert "the same against a locking-free refinement" not in verdicts(_physics_record((0.05, 0.02), 0.0))
+    ref["tables"]["reference_meshes"] = [      # the contact meshes the experiments press, against the same finest
+        {"mesh": m, "dofs": n, "marker_diff_vs_reference_mm": d, "marker_rms_vs_reference_mm": r}
+        for m, n, d, r in (("default", 3324, 0.14, 0.094), ("axis", 7356, 0.083, 0.044), ("sine", 5340, 0.145, 0.09))]
+    assert verdicts(ref)["the same against a locking-free refinement"][0].endswith(
+        "a press); the contact meshes axis 0.083 mm (RMS 0.044 mm, 7,356 DOFs), sine 0.145 mm (RMS 0.09 mm, 5,340 DOFs)")
     rec = _physics_record((0.05, 0.02), 0.0)
     del rec["tables"]["cases"]
     with pytest.raises(res.ResultsError, match="no force_depth and cases tables"):
@@ -871,6 +876,38 @@ def test_report_against_another_run_puts_the_calibration_modes_side_by_side(toy,
     assert cells[2:6] == ["1", "1.5", "0.5", "mm"]
     (tmp_path / "empty").mkdir()
     assert main(["report", str(oracle), "--against", str(tmp_path / "empty")]) == 2
+
+
+def test_offered_meshes_are_measured_against_the_reference_markers():
+    """Each named mesh the twin offers is pressed once (the default reuses the convergence study's production
+    press) and its markers' largest and RMS distance from the reference family's finest are recorded."""
+    from types import SimpleNamespace
+
+    from benchmarks.experiments.physics_reference import mesh_spec, offered_meshes
+    from twin.physics import AXIS_CONTACT_MESH, SINE_CONTACT_MESH, MeshSpec
+
+    assert (mesh_spec("default"), mesh_spec("axis"), mesh_spec("sine")) == (MeshSpec(), AXIS_CONTACT_MESH,
+                                                                            SINE_CONTACT_MESH)
+    finest = {"markers": np.zeros((4, 3))}
+    shift = {AXIS_CONTACT_MESH: 0.1, SINE_CONTACT_MESH: 0.3}
+    pressed = []
+
+    def press(design, depths, spec):
+        pressed.append(spec)
+        markers = np.zeros((4, 3))
+        markers[0, 0] = shift[spec]                       # one marker of four off by the shift
+        truth = SimpleNamespace(marker_xyz_mm=markers, validity={"penetration_max_mm": 0.01})
+        return [(depths[0], 1.5, truth, None, None)], 2.0, SimpleNamespace(model=SimpleNamespace(nv=99))
+
+    prod = {"dofs": 10, "force_n": 2.0, "markers": np.full((4, 3), 0.2) * [1, 0, 0], "seconds": 1.0,
+            "penetration_max_mm": 0.0}
+    bar = SimpleNamespace(update=lambda: None)
+    rows = offered_meshes(None, ("axis", "sine"), 2.0, press, bar, prod, finest)
+    assert pressed == [AXIS_CONTACT_MESH, SINE_CONTACT_MESH]
+    assert [r["mesh"] for r in rows] == ["default", "axis", "sine"]
+    assert [r["marker_diff_vs_reference_mm"] for r in rows] == pytest.approx([0.2, 0.1, 0.3])
+    assert [r["marker_rms_vs_reference_mm"] for r in rows] == pytest.approx([0.2, 0.05, 0.15])
+    assert "markers" in prod and all("markers" not in r for r in rows)
 
 
 def test_the_physics_reference_job_presses_an_elastic_flex():

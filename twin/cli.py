@@ -35,7 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the skin's outer faces also collide with spheres on the indenter's tips, crests and steep "
                         "flanks (keeps faces out of sharp indenters; on the 1.5 mm mesh vertices then stand off a "
                         "curved cap, see README 'Contact model')")
-    p.add_argument("--mesh", choices=("default", "axis", "sine"), default="default",
+    from twin.mesh import NAMED_MESHES
+
+    p.add_argument("--mesh", choices=tuple(NAMED_MESHES), default="default",
                    help="skin mesh: 'default' (1.5 mm over the centre, vertex contact unless --face-contact), 'axis' "
                         "(0.5 mm cells within 3 mm of the sensor axis plus face contact: what the Gaussian experiment "
                         "presses on; keeps Gaussians and spheres on the axis valid, ~10x slower) or 'sine' (1.5 mm "
@@ -104,10 +106,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return 0
     indenter = make_indenter(args.indenter, **parse_params(args.indenter, args.param))
     t0 = time.perf_counter()
-    from twin.physics import AXIS_CONTACT_MESH, SINE_CONTACT_MESH, MeshSpec
+    from twin.physics import NAMED_MESHES, MeshSpec
 
-    mesh = {"axis": AXIS_CONTACT_MESH, "sine": SINE_CONTACT_MESH}.get(args.mesh,
-                                                                   MeshSpec(face_contact=bool(args.face_contact)))
+    mesh = MeshSpec(face_contact=bool(args.face_contact)) if args.mesh == "default" else NAMED_MESHES[args.mesh]
     if args.motion == "press":
         run = simulate.press(design, indenter, args.depth, n_frames=args.steps, yaw_deg=args.yaw_deg, rng=rng,
                              progress=True, mesh=mesh, friction=args.friction)

@@ -48,7 +48,7 @@ import numpy as np
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
 
-__all__ = ["MeshSpec", "AXIS_CONTACT_MESH", "PhysicsError", "build_mesh", "PinEmbedding", "embed_pins",
+__all__ = ["MeshSpec", "AXIS_CONTACT_MESH", "SINE_CONTACT_MESH", "NAMED_MESHES", "PhysicsError", "build_mesh", "PinEmbedding", "embed_pins",
            "pin_markers"]
 
 EDGE_MARKER_TOL_MM = 0.02         # how far a marker's skin cell may sit on the rounded edge (MeshSpec.edge_drop_mm)
@@ -123,6 +123,10 @@ AXIS_CONTACT_MESH = MeshSpec(core_mm=0.5, core_half_mm=3.0, face_contact=True, m
 # crests crossing the cells obliquely). Measured on the sine experiment's 15 presses (hexagon127, 5 mm, mu = 1, its
 # plate rounded off beyond 13.5 mm): all valid, at most 0.043 mm inside, 10-121 s a press.
 SINE_CONTACT_MESH = MeshSpec(face_contact=True, fine_half_mm=18.0, sag_tol_mm=0.01)
+
+# The meshes offered by name (``simulate --mesh``), each measured against a locking-free refinement by
+# ``bench physics`` (docs/CONTACT_MODEL.md)
+NAMED_MESHES = {"default": MeshSpec(), "axis": AXIS_CONTACT_MESH, "sine": SINE_CONTACT_MESH}
 
 
 def _axis(fine_mm: float, fine_half_mm: float, growth: float, radius_mm: float,

@@ -33,7 +33,7 @@ import numpy as np
 from pipeline.design import SensorDesign
 from twin import model as _model, solve, stick, units, volumetric
 from twin.indenters import Indenter
-from twin.mesh import AXIS_CONTACT_MESH, SINE_CONTACT_MESH, MeshSpec, PhysicsError, build_mesh, embed_pins
+from twin.mesh import AXIS_CONTACT_MESH, NAMED_MESHES, SINE_CONTACT_MESH, MeshSpec, PhysicsError, build_mesh, embed_pins
 from twin.model import _BIT_FACES, _BIT_SPHERES, _FLIP
 from twin.solve import DIRECT_ABORT_MM, DIRECT_ACCEPT_MM, SETTLE_CONSECUTIVE, SETTLE_DAMPED_STEPS, \
     SETTLE_MAX_STEPS, SETTLE_TOL_MM, SettleStats
@@ -42,7 +42,7 @@ from twin.stick import resolve_friction
 
 # re-exported from twin.mesh and twin.solve: what a caller of SkinSim passes it, gets back or catches
 __all__ = ["MeshSpec", "SkinSim", "SettleStats", "PhysicsError", "SETTLE_TOL_MM", "max_depth_mm", "DIRECT_ACCEPT_MM",
-           "AXIS_CONTACT_MESH", "SINE_CONTACT_MESH", "resolve_friction"]
+           "AXIS_CONTACT_MESH", "SINE_CONTACT_MESH", "NAMED_MESHES", "resolve_friction"]
 
 FRICTION_SETTLE_MAX_STEPS = 1200  # with friction a dragged contact relaxes by its anchors sliding at most
                                   # stick.STICK_MAX_SLIDE_MM a step: the letter 'o' after its rapid 2 mm + 2 mm

@@ -35,7 +35,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from benchmarks.experiments.physics_reference import REFERENCE_FAMILY, marker_diff_mm, reference_family
+from benchmarks.experiments.physics_reference import (OFFERED_MESHES, REFERENCE_FAMILY, marker_diff_mm, offered_meshes,
+                                                      reference_family)
 from benchmarks.experiments.physics_reference import report as report_reference
 from benchmarks.registry import Context, Finding, Result, register
 from benchmarks.results import PAGE_IN, paper_style, save_figure
@@ -147,6 +148,7 @@ def _mirror_errors(design, truth) -> tuple[float, float]:
         "convergence_marker_max_mm": "mm", "convergence_force_rel": "1", "convergence_pin_base_max_mm": "mm",
         "convergence_pin_tilt_max_mm": "mm", "convergence_marker_vs_reference_mm": "mm",
         "convergence_finest_vs_reference_mm": "mm", "reference_marker_diff_mm": "mm", "reference_force_n": "N",
+        "axis_mesh_marker_vs_reference_mm": "mm", "sine_mesh_marker_vs_reference_mm": "mm",
         "penetration_max_mm": "mm", "invalid_frames": "1", "press_s_median": "s",
     },
     requires=("twin.physics", "twin.robot", "twin.indenters"),
@@ -161,13 +163,16 @@ def run(ctx: Context) -> Result:
     layer = _Layer.of(design)
     cases = _cases(design)
     family = ctx.param("reference_family", REFERENCE_FAMILY, quick=())   # full runs: ~6 min more
-    bar = ctx.bar(total=len(cases) + len(resolutions) + len(family), desc="physics")
+    meshes = ctx.param("reference_meshes", OFFERED_MESHES, quick=()) if family else ()   # ~30 s more
+    bar = ctx.bar(total=len(cases) + len(resolutions) + len(family) + len(meshes), desc="physics")
     fd = _force_depth(cases, depths, layer, bar)
     sym = _report_force_depth(out, fd)
     conv = _convergence(design, resolutions, conv_depth, bar)
     ref = reference_family(design, family, conv_depth, _press_series, bar) if family else []
+    prod = _production_row(conv)
+    offered = offered_meshes(design, meshes, conv_depth, _press_series, bar, prod, ref[-1]) if ref else []
     bar.close()
-    prod = _report_convergence(out, fd, conv, ref)
+    _report_convergence(out, fd, conv, prod, ref, offered)
     _findings(out, layer, fd.rows, conv, prod, sym, ref)
     _notes(out, layer)
     out.figures.append(_plot(ctx, cases, fd.rows, conv, layer, depths))
@@ -347,13 +352,18 @@ def _convergence(design, resolutions, conv_depth: float, bar) -> list[dict]:
     return conv
 
 
-def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict], ref: list[dict]) -> dict:
-    """Convergence (and, with ``ref``, the reference family's) and frame-health metrics and the tables; returns
-    the production mesh's convergence row."""
+def _production_row(conv: list[dict]) -> dict:
+    """The production mesh's row of the convergence study."""
+    return next((c for c in conv if c["fine_mm"] == PRODUCTION_FINE_MM), conv[0])
+
+
+def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict], prod: dict, ref: list[dict],
+                        offered: list[dict]) -> None:
+    """Convergence (and, with ``ref``, the reference family's and the offered meshes') and frame-health metrics
+    and the tables."""
     frames = fd.frames + [c["validity"] for c in conv]
-    prod = next((c for c in conv if c["fine_mm"] == PRODUCTION_FINE_MM), conv[0])
     if ref:
-        report_reference(out, conv, prod, ref)
+        report_reference(out, conv, prod, ref, offered)
     out.metric("convergence_marker_max_mm", prod["marker_diff_vs_finest_mm"], "mm")
     out.metric("convergence_force_rel", prod["force_rel_vs_finest"], "1")
     out.metric("convergence_pin_base_max_mm", prod["pin_base_diff_vs_finest_mm"], "mm")
@@ -364,7 +374,6 @@ def _report_convergence(out: Result, fd: _ForceDepth, conv: list[dict], ref: lis
     out.tables["force_depth"] = fd.rows
     out.tables["cases"] = fd.cases
     out.tables["convergence"] = [{k: v for k, v in c.items() if k not in ("markers", "axes", "validity")} for c in conv]
-    return prod
 
 
 def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], prod: dict, sym: _Symmetry,
@@ -421,7 +430,9 @@ def _findings(out: Result, layer: _Layer, rows: list[dict], conv: list[dict], pr
             f"{ref[-1]['skin_layers']} skin layer{'s' if ref[-1]['skin_layers'] != 1 else ''} and nodal volumetric "
             f"stiffness (force {prod['force_n']:.2f} against "
             f"{ref[-1]['force_n']:.2f} N); the element-wise finest {m['convergence_finest_vs_reference_mm']:.3f} mm; "
-            "the family " + " / ".join(f"{r['marker_diff_vs_finest_mm']:.3f}" for r in ref[:-1]) + " mm from its finest",
+            "the family " + " / ".join(f"{r['marker_diff_vs_finest_mm']:.3f}" for r in ref[:-1]) + " mm from its finest"
+            + "".join(f"; the {r['mesh']} contact mesh {r['marker_diff_vs_reference_mm']:.3f} mm"
+                      for r in out.tables.get("reference_meshes", []) if r["mesh"] != "default"),
             bool(m["convergence_marker_vs_reference_mm"] <= CONVERGENCE_TOL_MM)))
 
 

@@ -9,6 +9,9 @@ coarser), the gel refined through its thickness, two tetrahedra through the skin
 averaged nodal volumes (``MeshSpec(volumetric="nodal")``, :mod:`twin.volumetric`). Its finest member is the
 reference the production mesh's markers are measured against; its own differences say how well the reference
 itself is converged.
+
+The meshes the twin presses the experiments on (``simulate --mesh default|axis|sine``: :data:`OFFERED_MESHES`) are
+measured against the same finest member (:func:`offered_meshes`): the error a user inherits from the mesh they pick.
 """
 
 from __future__ import annotations
@@ -20,6 +23,14 @@ import numpy as np
 REFERENCE_HALF_MM = 16.0   # the family's cells reach this far from the axis: beyond hexagon127's outermost marker
 REFERENCE_FAMILY = ((1.5, 2, (0.75, 1.5, 2.5, 4.0, 6.0)), (1.0, 2, (0.75, 1.5, 2.5, 4.0, 6.0)),
                     (0.75, 2, (0.5, 1.0, 1.75, 2.5, 4.0, 6.0)))    # (cells mm, skin layers, gel levels mm)
+OFFERED_MESHES = ("axis", "sine")   # besides the default (the convergence study's production row), pressed in turn
+
+
+def mesh_spec(name: str):
+    """The twin's named mesh (``simulate --mesh``): 'default', 'axis' (the Gaussian experiment's) or 'sine'."""
+    from twin.physics import NAMED_MESHES
+
+    return NAMED_MESHES[name]
 
 
 def reference_family(design, family, depth_mm: float, press: Callable, bar) -> list[dict]:
@@ -42,13 +53,32 @@ def reference_family(design, family, depth_mm: float, press: Callable, bar) -> l
     return rows
 
 
+def offered_meshes(design, names, depth_mm: float, press: Callable, bar, prod: dict, finest: dict) -> list[dict]:
+    """The default mesh (``prod``, already pressed) and each named mesh pressed as the family was, each row with
+    its markers' largest and RMS distance from the family's finest (``finest``)."""
+    rows = [{"mesh": "default", "dofs": prod["dofs"], "force_n": prod["force_n"], "markers": prod["markers"],
+             "seconds": prod["seconds"], "penetration_max_mm": prod["penetration_max_mm"]}]
+    for name in names:
+        res, secs, sim = press(design, [depth_mm], mesh_spec(name))
+        _, force, truth, _, _ = res[0]
+        rows.append({"mesh": name, "dofs": int(sim.model.nv), "force_n": float(force), "markers": truth.marker_xyz_mm,
+                     "seconds": float(secs), "penetration_max_mm": truth.validity["penetration_max_mm"]})
+        bar.update()
+    for r in rows:
+        d = np.linalg.norm(np.asarray(r.pop("markers")) - np.asarray(finest["markers"]), axis=1)
+        r["marker_diff_vs_reference_mm"] = float(d.max())
+        r["marker_rms_vs_reference_mm"] = float(np.sqrt(np.mean(d * d)))
+    return rows
+
+
 def marker_diff_mm(a: np.ndarray, b: np.ndarray) -> float:
     """Largest distance (mm) between the same markers in two presses."""
     return float(np.max(np.linalg.norm(np.asarray(a) - np.asarray(b), axis=1)))
 
 
-def report(out, conv: list[dict], prod: dict, ref: list[dict]) -> None:
-    """Metrics and table: the production mesh and the element-wise finest against the family's finest."""
+def report(out, conv: list[dict], prod: dict, ref: list[dict], offered: list[dict] = ()) -> None:
+    """Metrics and tables: the production mesh, the element-wise finest and the offered meshes against the
+    family's finest."""
     finest = ref[-1]
     out.metric("convergence_marker_vs_reference_mm", marker_diff_mm(prod["markers"], finest["markers"]), "mm")
     out.metric("convergence_finest_vs_reference_mm", marker_diff_mm(conv[-1]["markers"], finest["markers"]), "mm")
@@ -57,3 +87,8 @@ def report(out, conv: list[dict], prod: dict, ref: list[dict]) -> None:
     for c in conv:
         c["marker_diff_vs_reference_mm"] = marker_diff_mm(c["markers"], finest["markers"])
     out.tables["reference_family"] = [{k: v for k, v in r.items() if k != "markers"} for r in ref]
+    for r in offered:
+        if r["mesh"] != "default":
+            out.metric(f"{r['mesh']}_mesh_marker_vs_reference_mm", r["marker_diff_vs_reference_mm"], "mm")
+    if offered:
+        out.tables["reference_meshes"] = list(offered)
