@@ -885,11 +885,11 @@ def test_offered_meshes_are_measured_against_the_reference_markers():
     press) and its markers' largest and RMS distance from the reference family's finest are recorded."""
     from types import SimpleNamespace
 
-    from benchmarks.experiments.physics_reference import mesh_spec, offered_meshes
-    from twin.physics import AXIS_CONTACT_MESH, SINE_CONTACT_MESH, MeshSpec
+    from benchmarks.experiments.physics_reference import offered_meshes
+    from twin.physics import AXIS_CONTACT_MESH, NAMED_MESHES, SINE_CONTACT_MESH, MeshSpec
 
-    assert (mesh_spec("default"), mesh_spec("axis"), mesh_spec("sine")) == (MeshSpec(), AXIS_CONTACT_MESH,
-                                                                            SINE_CONTACT_MESH)
+    assert (NAMED_MESHES["default"], NAMED_MESHES["axis"], NAMED_MESHES["sine"]) == (MeshSpec(), AXIS_CONTACT_MESH,
+                                                                                     SINE_CONTACT_MESH)
     finest = {"markers": np.zeros((4, 3))}
     shift = {AXIS_CONTACT_MESH: 0.1, SINE_CONTACT_MESH: 0.3}
     pressed = []

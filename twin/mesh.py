@@ -48,8 +48,8 @@ import numpy as np
 from pipeline.design import SensorDesign
 from pipeline.errors import UserError
 
-__all__ = ["MeshSpec", "AXIS_CONTACT_MESH", "SINE_CONTACT_MESH", "NAMED_MESHES", "PhysicsError", "build_mesh", "PinEmbedding", "embed_pins",
-           "pin_markers"]
+__all__ = ["MeshSpec", "AXIS_CONTACT_MESH", "SINE_CONTACT_MESH", "NAMED_MESHES", "PhysicsError", "build_mesh",
+           "PinEmbedding", "embed_pins", "pin_markers"]
 
 EDGE_MARKER_TOL_MM = 0.02         # how far a marker's skin cell may sit on the rounded edge (MeshSpec.edge_drop_mm)
 RIMS = ("clamped", "roller")       # MeshSpec.rim: how the mount holds the lateral boundary (module notes)

@@ -10,7 +10,7 @@ averaged nodal volumes (``MeshSpec(volumetric="nodal")``, :mod:`twin.volumetric`
 reference the production mesh's markers are measured against; its own differences say how well the reference
 itself is converged.
 
-The meshes the twin presses the experiments on (``simulate --mesh default|axis|sine``: :data:`OFFERED_MESHES`) are
+The meshes the twin presses the experiments on (``simulate --mesh default|axis|sine``, ``twin.mesh.NAMED_MESHES``; :data:`OFFERED_MESHES`) are
 measured against the same finest member (:func:`offered_meshes`): the error a user inherits from the mesh they pick.
 """
 
@@ -25,12 +25,6 @@ REFERENCE_FAMILY = ((1.5, 2, (0.75, 1.5, 2.5, 4.0, 6.0)), (1.0, 2, (0.75, 1.5, 2
                     (0.75, 2, (0.5, 1.0, 1.75, 2.5, 4.0, 6.0)))    # (cells mm, skin layers, gel levels mm)
 OFFERED_MESHES = ("axis", "sine")   # besides the default (the convergence study's production row), pressed in turn
 
-
-def mesh_spec(name: str):
-    """The twin's named mesh (``simulate --mesh``): 'default', 'axis' (the Gaussian experiment's) or 'sine'."""
-    from twin.physics import NAMED_MESHES
-
-    return NAMED_MESHES[name]
 
 
 def reference_family(design, family, depth_mm: float, press: Callable, bar) -> list[dict]:
@@ -56,24 +50,31 @@ def reference_family(design, family, depth_mm: float, press: Callable, bar) -> l
 def offered_meshes(design, names, depth_mm: float, press: Callable, bar, prod: dict, finest: dict) -> list[dict]:
     """The default mesh (``prod``, already pressed) and each named mesh pressed as the family was, each row with
     its markers' largest and RMS distance from the family's finest (``finest``)."""
+    from twin.physics import NAMED_MESHES
+
     rows = [{"mesh": "default", "dofs": prod["dofs"], "force_n": prod["force_n"], "markers": prod["markers"],
              "seconds": prod["seconds"], "penetration_max_mm": prod["penetration_max_mm"]}]
     for name in names:
-        res, secs, sim = press(design, [depth_mm], mesh_spec(name))
+        res, secs, sim = press(design, [depth_mm], NAMED_MESHES[name])
         _, force, truth, _, _ = res[0]
         rows.append({"mesh": name, "dofs": int(sim.model.nv), "force_n": float(force), "markers": truth.marker_xyz_mm,
                      "seconds": float(secs), "penetration_max_mm": truth.validity["penetration_max_mm"]})
         bar.update()
     for r in rows:
-        d = np.linalg.norm(np.asarray(r.pop("markers")) - np.asarray(finest["markers"]), axis=1)
+        d = _marker_distances_mm(r.pop("markers"), finest["markers"])
         r["marker_diff_vs_reference_mm"] = float(d.max())
         r["marker_rms_vs_reference_mm"] = float(np.sqrt(np.mean(d * d)))
     return rows
 
 
+def _marker_distances_mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance (mm) between each marker's positions in two presses."""
+    return np.linalg.norm(np.asarray(a) - np.asarray(b), axis=1)
+
+
 def marker_diff_mm(a: np.ndarray, b: np.ndarray) -> float:
     """Largest distance (mm) between the same markers in two presses."""
-    return float(np.max(np.linalg.norm(np.asarray(a) - np.asarray(b), axis=1)))
+    return float(np.max(_marker_distances_mm(a, b)))
 
 
 def report(out, conv: list[dict], prod: dict, ref: list[dict], offered: list[dict] = ()) -> None:
