@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.design import SensorDesign
+from pipeline.cross_view import across_views
 from pipeline.errors import UserError
 from pipeline.geometry.refraction import RefractionError, correct_exact, correct_linear, project_through_stack
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
@@ -210,11 +211,8 @@ class Reconstructor:
         rays = matched_rays(matches, self.calib)
         if len(matches) == 0:
             return matches, np.empty(0, np.int64), _empty_cloud(), rays
-        cloud, gap = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel if self.refraction == "exact"
-                                   else None, return_gap=True, rays=rays)
+        cloud, gap, ok = self._one_marker(matches, rays)
         z = cloud.xyz_mm[:, 2]
-        rest_z = self._rest_z[cloud.ids]
-        ok = (gap <= STEREO_GATE_MM) & (z >= self.design.gel_acrylic_z_mm) & (z <= rest_z + STEREO_BULGE_MM)
         self._stereo_reasons = {
             int(i): (f"stereo check: the two views' rays miss by {g:.2f} mm (gate {STEREO_GATE_MM} mm)"
                      if g > STEREO_GATE_MM else f"stereo check: triangulated depth z = {zz:.2f} mm is outside the gel")
@@ -236,6 +234,39 @@ class Reconstructor:
                              np.union1d(matches.unmatched_ids, rejected))
         return kept, rejected, kept_cloud, tuple(r[good] for r in rays)
 
+    def _one_marker(self, matches: MarkerMatches, rays: tuple | None = None,
+                    rest_z: np.ndarray | None = None) -> tuple[MarkerCloud, np.ndarray, np.ndarray]:
+        """The stereo check's test of each pair: (the exactly corrected cloud, its rays' gaps, whether each
+        of its pairs can be one marker: rays within :data:`STEREO_GATE_MM`, the point in the gel, i.e.
+        beyond the acrylic and at most :data:`STEREO_BULGE_MM` beyond ``rest_z`` indexed by the pair's id;
+        by default the design's rest depth of the marker)."""
+        cloud, gap = correct_exact(matches, self.calib, self.design, n_gel=self.n_gel if self.refraction == "exact"
+                                   else None, return_gap=True, rays=rays)
+        z = cloud.xyz_mm[:, 2]
+        rest_z = self._rest_z if rest_z is None else rest_z
+        ok = (gap <= STEREO_GATE_MM) & (z >= self.design.gel_acrylic_z_mm) & (z <= rest_z[cloud.ids] + STEREO_BULGE_MM)
+        return cloud, gap, ok
+
+    def _locate(self, left_px: np.ndarray, right_px: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per candidate pair (its pixel in each view, the marker id proposed): can it be one marker
+        (:meth:`_one_marker`), and its 3-D point (mm; NaN where the rays do not reach the gel)."""
+        pairs = MarkerMatches(np.arange(len(ids), dtype=np.int64), np.asarray(left_px, np.float64).reshape(-1, 2),
+                              np.asarray(right_px, np.float64).reshape(-1, 2), np.empty(0, np.int64))
+        cloud, _, ok = self._one_marker(pairs, rest_z=self._rest_z[ids])
+        out, xyz = np.zeros(len(ids), bool), np.full((len(ids), 3), np.nan)
+        out[cloud.ids], xyz[cloud.ids] = ok, cloud.xyz_mm
+        return out, xyz
+
+    def _commit(self, left: Blobs, right: Blobs, codings=None) -> MarkerMatches:
+        """The tracker's pairs of the frame: each view's coding (``codings`` from :meth:`_view`, or coded
+        here) completed from the other's through the stereo geometry (:func:`pipeline.cross_view.across_views`),
+        then committed (what the next frame follows on from includes the completion)."""
+        if not hasattr(self._tracker, "code_view"):
+            return self._tracker.update(left, right)
+        if codings is None:
+            codings = (self._tracker.code_view(0, left), self._tracker.code_view(1, right))
+        return self._tracker.commit(left, right, across_views((left, right), codings, self.design, self._locate))
+
     def _checked(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud, tuple]:
         """:meth:`_stereo_check`, and the rejected ids not carried into the next frame as certain."""
         out = self._stereo_check(matches)
@@ -247,7 +278,7 @@ class Reconstructor:
         """The identification stages of :meth:`process` on one frame's detected blobs: the tracker
         (with what earlier frames left it) and the stereo check. The pairs kept; for benchmarks that
         draw blobs directly (defects placed where a detector could not be made to put them)."""
-        return self._checked(self._tracker.update(left, right))[0]
+        return self._checked(self._commit(left, right))[0]
 
     def _view(self, view: int, image: np.ndarray) -> tuple[Blobs, object, float, float]:
         """Detect one view's markers and, with a tracker that codes views apart, identify them (reads only
@@ -266,7 +297,7 @@ class Reconstructor:
         t1 = time.perf_counter()
         if waited:
             self._views.record(ld + lm, waited[0])
-        matches = self._tracker.commit(left, right, (lc, rc)) if lc is not None else self._tracker.update(left, right)
+        matches = self._commit(left, right, (lc, rc) if lc is not None else None)
         t2 = time.perf_counter()
         if self._narrow and min(len(left), len(right)) >= self.design.marker_count // 2:
             from pipeline.vision.detection import marker_radius_px

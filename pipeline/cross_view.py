@@ -1,0 +1,154 @@
+"""Ids taken across the two views: a marker one view identifies is proposed to the other view's blob
+that its stereo geometry allows, and that view's certainty rule decides.
+
+Each view is identified on its own (:class:`pipeline.vision.dtrc.DTRCTracker`), and the two views do
+not fail alike: the cameras see the skin from either side of the baseline, so a press that drags the
+pins far in one frame (a rapid slide under friction moves the stuck skin ~0.9 separations between
+two frames) can bend one view's rings beyond what ring coding and the frame-to-frame map read while
+the other view's rings are read whole. The view that identified a marker says where it is in space up
+to its viewing ray; the other view's blob of that marker lies where that ray, refracted through the
+stack, is met by a ray of its own within the stereo check's gap and inside the gel.
+
+A proposal is made only where the geometry leaves one reading: the blob is the only free blob whose
+rays meet the marker's (:data:`pipeline.runner.STEREO_GATE_MM`, inside the gel), and the marker the
+only missing one whose rays meet the blob's. Along the baseline several markers of one row can meet
+one ray inside the gel (a different depth), so such a pair proposes nothing. The proposals are then
+certified in the receiving view exactly as ring coding's are (:func:`pipeline.vision.identity.certify`:
+locally consistent with its identified neighbours, anchored, not rotated; an interior marker held by
+:data:`~pipeline.vision.dtrc.proposals.HELD_BY` identified neighbours): a blob proposed as its
+neighbour sits a whole separation from where its neighbours put it and is refused. The receiving
+view's own ids are never changed; an id is only added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Callable
+
+import numpy as np
+
+from pipeline.design import SensorDesign
+from pipeline.types import Blobs
+from pipeline.vision.identity import certify, lattice_of
+
+__all__ = ["across_views", "MAX_PAIRS"]
+
+#: Candidate pairs (free blobs of one view × markers only the other view identified) tested at most;
+#: beyond, the view is left as it is (a view that identified almost nothing is read from its own blobs
+#: or the rest pattern, not rebuilt pair by pair from the other).
+MAX_PAIRS = 4096
+#: A pair's 3-D point must lie within this many separations of where its design neighbours' 3-D points
+#: (identified in both views) put the marker, by a local affine map of the design plane into space. Along
+#: the baseline the next marker of a row meets the same ray 4-6 mm deeper or shallower (1.8-2.5 mm
+#: patterns); the skin between two neighbours is smooth.
+XYZ_GATE = 0.5
+
+Locate = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesign, locate: Locate) -> tuple:
+    """The two views' codings ``((RingCoding, from_rest), (RingCoding, from_rest))`` (left, right), each
+    completed from the other (see the module notes). ``locate(left_px, right_px, ids)`` -> (ok (n,) bool,
+    xyz (n, 3) mm): the stereo check's test that a left and a right pixel are one marker of that id, and
+    the point they give."""
+    (lc, lrest), (rc, rrest) = codings
+    if lc.ids.size == 0 or rc.ids.size == 0:
+        return codings
+    lat = lattice_of(design)
+    todo = [np.setdiff1d(b.ids[b.ids >= 0], a.ids[a.ids >= 0]) for a, b in ((lc, rc), (rc, lc))]
+    if not any(len(w) and (a.ids < 0).any() for w, a in zip(todo, (lc, rc))):
+        return codings
+    both = np.intersect1d(lc.ids[lc.ids >= 0], rc.ids[rc.ids >= 0])
+    ok, xyz = locate(blobs[0].xy_px[_index(lc.ids)[both]], blobs[1].xy_px[_index(rc.ids)[both]], both)
+    space = np.full((len(lat.xy), 3), np.nan)
+    space[both[ok]] = xyz[ok]
+    left = _complete(blobs[0].xy_px, lc, blobs[1].xy_px, rc, True, lat, space, locate)
+    right = _complete(blobs[1].xy_px, rc, blobs[0].xy_px, lc, False, lat, space, locate)
+    return (left, lrest), (right, rrest)
+
+
+def _index(ids: np.ndarray) -> np.ndarray:
+    """Blob index of each design id (-1 where none)."""
+    where = np.full(int(max(ids.max(), 0)) + 1, -1, np.int64)
+    where[ids[ids >= 0]] = np.flatnonzero(ids >= 0)
+    return where
+
+
+def _predicted(want: np.ndarray, lat, space: np.ndarray) -> np.ndarray:
+    """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
+    than three of them, not on one line, have a 3-D point): a local affine map of the design plane."""
+    out = np.full((len(want), 3), np.nan)
+    for k, i in enumerate(want.tolist()):
+        nb = lat.nbr[i][lat.nbr[i] >= 0]
+        nb = nb[np.isfinite(space[nb, 0])]
+        if len(nb) < 3:
+            continue
+        A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
+        sv = np.linalg.svd(A[:, :2] / lat.pitch, compute_uv=False)
+        if sv[-1] < 0.5:                      # neighbours on one line: no plane
+            continue
+        out[k] = np.linalg.lstsq(A, space[nb], rcond=None)[0][2]
+    return out
+
+
+def _complete(pts: np.ndarray, coding, other_pts: np.ndarray, other, is_left: bool, lat, space: np.ndarray,
+              locate: Locate):
+    """``coding`` of one view's blobs ``pts`` with the ids ``other`` (the other view's coding of
+    ``other_pts``) adds, certified in this view."""
+    ids = coding.ids
+    free = np.flatnonzero(ids < 0)
+    want = np.setdiff1d(other.ids[other.ids >= 0], ids[ids >= 0])
+    if len(free) == 0 or len(want) == 0 or len(free) * len(want) > MAX_PAIRS:
+        return coding
+    proposal, space = ids.copy(), space.copy()
+    index = _index(other.ids)
+    while len(free) and len(want):
+        # the markers placed in space so far (both views', then this round's pairs) place the next ones
+        pred = _predicted(want, lat, space)
+        w = np.flatnonzero(np.isfinite(pred[:, 0]))
+        if len(w) == 0:
+            break
+        fi, wi = (a.ravel() for a in np.meshgrid(np.arange(len(free)), w, indexing="ij"))
+        a_px, b_px = pts[free[fi]], other_pts[index[want[wi]]]
+        ok, xyz = locate(*((a_px, b_px) if is_left else (b_px, a_px)), want[wi])
+        near = np.linalg.norm(np.nan_to_num(xyz - pred[wi], nan=np.inf), axis=1) <= XYZ_GATE * lat.pitch
+        ok = (ok & near).reshape(len(free), len(w))
+        one = ok & (ok.sum(axis=1, keepdims=True) == 1) & (ok.sum(axis=0, keepdims=True) == 1)
+        bi, wj = np.nonzero(one)
+        if len(bi) == 0:
+            break
+        proposal[free[bi]] = want[w[wj]]
+        space[want[w[wj]]] = xyz.reshape(len(free), len(w), 3)[bi, wj]
+        free, want = np.delete(free, bi), np.delete(want, w[wj])
+    new = np.flatnonzero((proposal >= 0) & (ids < 0))
+    if len(new) == 0:
+        return coding
+    certified = certify(pts, proposal, lat, np.zeros(len(lat.xy), np.int64))
+    took = new[certified[new] == proposal[new]]
+    if lat.translation_lattice and len(took):
+        took = took[_held(np.where(np.isin(np.arange(len(ids)), took), proposal, ids), took, lat)]
+    if len(took) == 0:
+        return coding
+    out = ids.copy()
+    out[took] = proposal[took]
+    carried = coding.carried.copy()
+    open_ = (carried[took] < 0) & ~np.isin(proposal[took], carried)
+    carried[took[open_]] = proposal[took[open_]]
+    gained = set(proposal[took].tolist())
+    keep = [k for k, i in enumerate(coding.unmatched_ids.tolist()) if i not in gained]
+    return replace(coding, ids=out, carried=carried, unmatched_ids=coding.unmatched_ids[keep],
+                   unmatched_reasons=tuple(coding.unmatched_reasons[k] for k in keep),
+                   messages=coding.messages + (f"the other view's ids certified {len(took)} more marker(s) through the "
+                                               "stereo geometry",))
+
+
+def _held(ids: np.ndarray, took: np.ndarray, lat) -> np.ndarray:
+    """Which of the blobs ``took`` (given their proposed ids in ``ids``) are outer-ring markers or held by
+    :data:`~pipeline.vision.dtrc.proposals.HELD_BY` identified immediate design neighbours."""
+    from pipeline.vision.dtrc.proposals import HELD_BY
+
+    has = np.zeros(len(lat.xy), bool)
+    has[ids[ids >= 0]] = True
+    nb = lat.nbr[ids[took]]
+    held = np.count_nonzero((nb >= 0) & has[np.maximum(nb, 0)], axis=1)
+    return (held >= HELD_BY) | np.isin(ids[took], lat.outer_ring)

@@ -1,0 +1,139 @@
+"""Ids taken across the two views (``pipeline.cross_view``): a marker one view identifies and the other
+does not is proposed through the stereo geometry and certified in the view that lacked it; never wrong.
+
+The views are analytic presses projected through the nominal calibration and the refracting stack, so
+every blob's marker is known; a view's reading is thinned by withdrawing ids from its own (correct)
+ring coding, as a press that bends one view's rings beyond ring coding leaves it."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipeline.cross_view import XYZ_GATE, across_views
+from pipeline.design import load_design
+from pipeline.geometry.refraction import project_through_stack
+from pipeline.runner import Reconstructor
+from pipeline.types import Blobs
+from pipeline.vision.dtrc import code_rings
+from synth_frames import gaussian_press_markers, nominal_calibration
+
+
+def _blobs(pts):
+    return Blobs(np.ascontiguousarray(pts, np.float64), np.full(len(pts), 3.0), np.ones(len(pts)))
+
+
+def _press(name="hexagon127", depth=3.0, sigma=3.0, centre=(2.0, 2.0)):
+    design = load_design(name)
+    calib = nominal_calibration(design)
+    left, right = project_through_stack(gaussian_press_markers(design, depth, sigma_mm=sigma, centre_xy_mm=centre),
+                                        calib, design)
+    return design, calib, left, right
+
+
+def _withdrawn(coding, ids):
+    """``coding`` with ``ids`` no longer identified (the blobs stay)."""
+    out = coding.ids.copy()
+    out[np.isin(out, ids)] = -1
+    return dataclasses.replace(coding, ids=out, carried=out.copy(),
+                               unmatched_ids=np.union1d(coding.unmatched_ids, ids),
+                               unmatched_reasons=tuple("withdrawn" for _ in np.union1d(coding.unmatched_ids, ids)))
+
+
+def _patch(design, centre_id, radius_sep=1.6):
+    xy = design.rest_markers_mm()[:, :2]
+    return np.flatnonzero(np.hypot(*(xy - xy[centre_id]).T) <= radius_sep * design.pattern.separation_mm)
+
+
+def test_a_patch_one_view_lost_is_identified_from_the_other():
+    """A patch of seven markers beside the press (a marker and its six neighbours) that the left view's
+    reading lost is identified again, each id on its own marker's blob, and only there; the right view,
+    which read everything, is unchanged."""
+    design, calib, left, right = _press()
+    lost = _patch(design, 108)
+    assert len(lost) == 7
+    lc, rc = code_rings(_blobs(left), design), code_rings(_blobs(right), design)
+    np.testing.assert_array_equal(lc.ids, np.arange(design.marker_count))     # blob k is marker k
+    rec = Reconstructor(design, calib)
+    (lc2, _), (rc2, _) = across_views((_blobs(left), _blobs(right)), ((_withdrawn(lc, lost), False), (rc, False)),
+                                      design, rec._locate)
+    np.testing.assert_array_equal(lc2.ids, np.arange(design.marker_count))
+    np.testing.assert_array_equal(lc2.carried, lc2.ids)
+    assert lc2.unmatched_ids.size == 0 and "stereo geometry" in lc2.messages[-1]
+    assert rc2 is rc
+
+
+def _row_case():
+    """The press above with marker 108's blob gone from the left view, and the left reading without 108 and
+    the next marker of its row along the baseline (``j``): (design, runner, left blobs, the other view's
+    blobs and coding, 108, j, the thinned left coding, the true id of each left blob)."""
+    design, calib, left, right = _press()
+    xy = design.rest_markers_mm()[:, :2]
+    i = 108
+    j = int(np.flatnonzero((np.abs(xy[:, 1] - xy[i, 1]) < 1e-6)
+                           & (np.abs(xy[:, 0] - xy[i, 0] - design.pattern.separation_mm) < 1e-6))[0])
+    keep = np.arange(design.marker_count) != i
+    lc = code_rings(_blobs(left), design)
+    ids = np.where(np.isin(lc.ids, [i, j]), -1, lc.ids)[keep]
+    thinned = dataclasses.replace(lc, ids=ids, carried=ids.copy(), ring=lc.ring[keep])
+    other = _blobs(right)
+    return (design, Reconstructor(design, calib), _blobs(left[keep]), other, code_rings(other, design), i, j,
+            thinned, np.arange(design.marker_count)[keep])
+
+
+def test_a_row_neighbour_on_the_same_ray_is_not_taken():
+    """Along the baseline the next marker of a row meets the other view's ray inside the gel, 4-6 mm deeper
+    or shallower: with the marker's own blob gone from the left view, its row neighbour's blob is the only
+    free blob its right ray meets within the stereo gates. The 3-D gate (where the marker's identified
+    neighbours put it in space) refuses that pair, so the neighbour gets its own id and the marker stays
+    open."""
+    design, rec, left, right, rc, i, j, thinned, truth = _row_case()
+    blob_j = int(np.flatnonzero(truth == j)[0])
+    ok, xyz = rec._locate(left.xy_px[[blob_j]], right.xy_px[[i]], np.array([i]))
+    assert ok[0], "the row neighbour's blob meets the marker's ray inside the gel"
+    true_z = gaussian_press_markers(design, 3.0, sigma_mm=3.0, centre_xy_mm=(2.0, 2.0))[i, 2]
+    assert abs(xyz[0, 2] - true_z) > 3.0
+    (lc2, _), _ = across_views((left, right), ((thinned, False), (rc, False)), design, rec._locate)
+    got = lc2.ids >= 0
+    np.testing.assert_array_equal(lc2.ids[got], truth[got])
+    assert lc2.ids[blob_j] == j and i not in lc2.ids
+
+
+def test_without_the_3d_gate_the_row_neighbour_is_ambiguous(monkeypatch):
+    """The same view with the 3-D gate opened: the neighbour's blob passes for both ids, which the
+    uniqueness test refuses (no id rather than a wrong one)."""
+    import pipeline.cross_view as cross_view
+
+    monkeypatch.setattr(cross_view, "XYZ_GATE", 1e9)
+    design, rec, left, right, rc, i, j, thinned, truth = _row_case()
+    (lc2, _), _ = across_views((left, right), ((thinned, False), (rc, False)), design, rec._locate)
+    got = lc2.ids >= 0
+    np.testing.assert_array_equal(lc2.ids[got], truth[got])
+    assert i not in lc2.ids and j not in lc2.ids
+    assert XYZ_GATE <= 0.5
+
+
+@pytest.mark.parametrize("name", ["hexagon127", "square121", "circular217_dome", "hexagon217_sep180"])
+def test_through_the_runner_a_thinned_view_is_completed_and_paired(name, monkeypatch):
+    """Through :meth:`Reconstructor.identify`: the left view's ring coding loses a patch (as a strong slide
+    bends one view's rings), the pairs come back complete and every pair is its marker in both views;
+    without the completion that patch is unmatched."""
+    import pipeline.runner as runner
+    from pipeline.vision.dtrc import tracking
+
+    design, calib, left, right = _press(name)
+    lost = _patch(design, int(np.argmin(np.hypot(*(design.rest_markers_mm()[:, :2] - (4.0, 0.0)).T))))
+    real = tracking.code_rings
+
+    def thin(blobs, d, **kw):
+        c = real(blobs, d, **kw)
+        return _withdrawn(c, lost) if np.allclose(blobs.xy_px, left) else c
+
+    monkeypatch.setattr(tracking, "code_rings", thin)
+    got = Reconstructor(design, calib, view_threads=1).identify(_blobs(left), _blobs(right))
+    np.testing.assert_array_equal(got.ids, np.arange(design.marker_count))
+    np.testing.assert_array_equal(got.left_px, left)
+    np.testing.assert_array_equal(got.right_px, right)
+    monkeypatch.setattr(runner, "across_views", lambda blobs, codings, d, locate: codings)
+    got = Reconstructor(design, calib, view_threads=1).identify(_blobs(left), _blobs(right))
+    assert np.intersect1d(got.ids, lost).size == 0
