@@ -33,10 +33,11 @@ from pipeline.vision.identity import certify, lattice_of
 
 __all__ = ["across_views", "MAX_PAIRS"]
 
-#: Candidate pairs (free blobs of one view × markers only the other view identified) tested at most;
-#: beyond, the view is left as it is (a view that identified almost nothing is read from its own blobs
-#: or the rest pattern, not rebuilt pair by pair from the other).
-MAX_PAIRS = 4096
+#: Candidate pairs (free blobs of one view × markers only the other view identified) tested at most
+#: (128 × 128, ~10 ms a round on this machine's core); beyond, the view is left as it is (a view that
+#: identified almost nothing is read from its own blobs or the rest pattern, not rebuilt pair by pair
+#: from the other).
+MAX_PAIRS = 16384
 #: A pair's 3-D point must lie within this many separations of where its design neighbours' 3-D points
 #: (identified in both views) put the marker, by a local affine map of the design plane into space. Along
 #: the baseline the next marker of a row meets the same ray 4-6 mm deeper or shallower (1.8-2.5 mm
@@ -76,18 +77,21 @@ def _index(ids: np.ndarray) -> np.ndarray:
 
 def _predicted(want: np.ndarray, lat, space: np.ndarray) -> np.ndarray:
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
-    than three of them, not on one line, have a 3-D point): a local affine map of the design plane."""
+    than three of them, not on one line, have a 3-D point): a local affine map of the design plane, fitted
+    to its immediate neighbours or, where those are too few, to the neighbours within 2.5 pitches (over
+    which a press bends the skin more: a bent fit misses the marker's point, and no pair is proposed)."""
     out = np.full((len(want), 3), np.nan)
     for k, i in enumerate(want.tolist()):
-        nb = lat.nbr[i][lat.nbr[i] >= 0]
-        nb = nb[np.isfinite(space[nb, 0])]
-        if len(nb) < 3:
-            continue
-        A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
-        sv = np.linalg.svd(A[:, :2] / lat.pitch, compute_uv=False)
-        if sv[-1] < 0.5:                      # neighbours on one line: no plane
-            continue
-        out[k] = np.linalg.lstsq(A, space[nb], rcond=None)[0][2]
+        for table in (lat.nbr, lat.nbr2):     # the immediate neighbours; where too few, those within 2.5 pitches
+            nb = table[i][table[i] >= 0]
+            nb = nb[np.isfinite(space[nb, 0])]
+            if len(nb) < 3:
+                continue
+            A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
+            if np.linalg.svd(A[:, :2] / lat.pitch, compute_uv=False)[-1] < 0.5:   # on one line: no plane
+                continue
+            out[k] = np.linalg.lstsq(A, space[nb], rcond=None)[0][2]
+            break
     return out
 
 
