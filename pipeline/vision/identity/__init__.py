@@ -1,8 +1,8 @@
 """The certainty rule of marker identification: an id is emitted only when the geometry leaves no
 other reading; every other marker is unmatched, with a reason.
 
-Ring coding (:mod:`pipeline.vision.dtrc`), a lattice registration and the previous frame only *propose*
-ids. A proposal becomes an identification through three tests, each about the sensor's geometry:
+Ring coding (:mod:`pipeline.vision.dtrc`), a lattice registration, the previous frame and the other view
+(:mod:`pipeline.cross_view`) only *propose* ids. A proposal becomes an identification through three tests, each about the sensor's geometry:
 
 1. **Local consistency.** A marker's closed design neighbourhood (the marker and its identified
    design neighbours within 1.5 separations) must be one smooth piece of skin: every member lies
