@@ -9,14 +9,17 @@ the other view's rings are read whole. The view that identified a marker says wh
 to its viewing ray; the other view's blob of that marker lies where that ray, refracted through the
 stack, is met by a ray of its own within the stereo check's gap and inside the gel.
 
-A proposal is made only where the geometry leaves one reading: the blob is the only free blob whose
-rays meet the marker's (:data:`pipeline.runner.STEREO_GATE_MM`, inside the gel), and the marker the
-only missing one whose rays meet the blob's. Along the baseline several markers of one row can meet
-one ray inside the gel (a different depth), so such a pair proposes nothing. The proposals are then
-certified in the receiving view exactly as ring coding's are (:func:`pipeline.vision.identity.certify`:
-locally consistent with its identified neighbours, anchored, not rotated; an interior marker held by
-:data:`~pipeline.vision.dtrc.proposals.HELD_BY` identified neighbours): a blob proposed as its
-neighbour sits a whole separation from where its neighbours put it and is refused. The receiving
+A proposal is made only where the geometry leaves one reading. The pair's rays must meet within the
+stereo check's gap inside the gel (:meth:`pipeline.runner.Reconstructor._locate`); along the baseline the
+next marker of a row meets the same ray inside the gel too, 4-6 mm deeper or shallower, so the pair's
+3-D point must also lie within :data:`XYZ_GATE` separations of where the marker's design neighbours'
+3-D points put it (those identified in both views, then those placed by earlier rounds); and the blob
+must be the only free blob that passes for the marker, the marker the only one that passes for the
+blob. The proposals are then certified in the receiving view exactly as ring coding's are
+(:func:`pipeline.vision.identity.certify`: locally consistent with its identified neighbours, anchored,
+not rotated; an interior marker held by :data:`~pipeline.vision.dtrc.proposals.HELD_BY` identified
+neighbours): a blob proposed as its neighbour sits a whole separation from where its neighbours put it
+and is refused. The receiving
 view's own ids are never changed; an id is only added.
 """
 
@@ -39,7 +42,7 @@ __all__ = ["across_views", "MAX_PAIRS"]
 #: from the other).
 MAX_PAIRS = 16384
 #: A pair's 3-D point must lie within this many separations of where its design neighbours' 3-D points
-#: (identified in both views) put the marker, by a local affine map of the design plane into space. Along
+#: (identified in both views, or placed by an earlier round) put the marker, by a local affine map of the design plane into space. Along
 #: the baseline the next marker of a row meets the same ray 4-6 mm deeper or shallower (1.8-2.5 mm
 #: patterns); the skin between two neighbours is smooth.
 XYZ_GATE = 0.5
