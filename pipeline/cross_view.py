@@ -32,6 +32,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.types import Blobs
+from pipeline.vision.dtrc.proposals import held
 from pipeline.vision.identity import certify, lattice_of
 
 __all__ = ["across_views", "MAX_PAIRS"]
@@ -66,8 +67,8 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
     ok, xyz = locate(blobs[0].xy_px[_index(lc.ids)[both]], blobs[1].xy_px[_index(rc.ids)[both]], both)
     space = np.full((len(lat.xy), 3), np.nan)
     space[both[ok]] = xyz[ok]
-    left = _complete(blobs[0].xy_px, lc, blobs[1].xy_px, rc, True, lat, space, locate)
-    right = _complete(blobs[1].xy_px, rc, blobs[0].xy_px, lc, False, lat, space, locate)
+    left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, locate)
+    right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, locate)
     return (left, lrest), (right, rrest)
 
 
@@ -98,13 +99,12 @@ def _predicted(want: np.ndarray, lat, space: np.ndarray) -> np.ndarray:
     return out
 
 
-def _complete(pts: np.ndarray, coding, other_pts: np.ndarray, other, is_left: bool, lat, space: np.ndarray,
-              locate: Locate):
-    """``coding`` of one view's blobs ``pts`` with the ids ``other`` (the other view's coding of
-    ``other_pts``) adds, certified in this view."""
+def _complete(pts: np.ndarray, coding, want: np.ndarray, other_pts: np.ndarray, other, is_left: bool, lat,
+              space: np.ndarray, locate: Locate):
+    """``coding`` of one view's blobs ``pts`` with the ids ``want`` that only ``other`` (the other view's
+    coding of ``other_pts``) identified, certified in this view."""
     ids = coding.ids
     free = np.flatnonzero(ids < 0)
-    want = np.setdiff1d(other.ids[other.ids >= 0], ids[ids >= 0])
     if len(free) == 0 or len(want) == 0 or len(free) * len(want) > MAX_PAIRS:
         return coding
     proposal, space = ids.copy(), space.copy()
@@ -133,7 +133,9 @@ def _complete(pts: np.ndarray, coding, other_pts: np.ndarray, other, is_left: bo
     certified = certify(pts, proposal, lat, np.zeros(len(lat.xy), np.int64))
     took = new[certified[new] == proposal[new]]
     if lat.translation_lattice and len(took):
-        took = took[_held(np.where(np.isin(np.arange(len(ids)), took), proposal, ids), took, lat)]
+        taken = np.zeros(len(ids), bool)
+        taken[took] = True
+        took = took[held(np.where(taken, proposal, ids), took, lat)]
     if len(took) == 0:
         return coding
     out = ids.copy()
@@ -148,14 +150,3 @@ def _complete(pts: np.ndarray, coding, other_pts: np.ndarray, other, is_left: bo
                    messages=coding.messages + (f"the other view's ids certified {len(took)} more marker(s) through the "
                                                "stereo geometry",))
 
-
-def _held(ids: np.ndarray, took: np.ndarray, lat) -> np.ndarray:
-    """Which of the blobs ``took`` (given their proposed ids in ``ids``) are outer-ring markers or held by
-    :data:`~pipeline.vision.dtrc.proposals.HELD_BY` identified immediate design neighbours."""
-    from pipeline.vision.dtrc.proposals import HELD_BY
-
-    has = np.zeros(len(lat.xy), bool)
-    has[ids[ids >= 0]] = True
-    nb = lat.nbr[ids[took]]
-    held = np.count_nonzero((nb >= 0) & has[np.maximum(nb, 0)], axis=1)
-    return (held >= HELD_BY) | np.isin(ids[took], lat.outer_ring)

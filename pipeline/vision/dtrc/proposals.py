@@ -132,6 +132,16 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
 HELD_BY = 3
 
 
+def held(ids: np.ndarray, lab: np.ndarray, lat) -> np.ndarray:
+    """Which of the identified blobs ``lab`` (their ids in ``ids``, one id per blob) are outer-ring markers or
+    have at least :data:`HELD_BY` of their immediate design neighbours identified in ``ids``."""
+    has = np.zeros(len(lat.xy), bool)
+    has[ids[ids >= 0]] = True
+    nb = lat.nbr[ids[lab]]
+    count = np.count_nonzero((nb >= 0) & has[np.maximum(nb, 0)], axis=1)
+    return (count >= HELD_BY) | np.isin(ids[lab], lat.outer_ring)
+
+
 def _withdraw_thinly_held(ids: np.ndarray, reason: np.ndarray, lat, msgs: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Withdraw the ids of interior markers with fewer than :data:`HELD_BY` identified immediate design
     neighbours (reason ``R_FEW``), once. Near a sharp press tip the skin crowds to half the median
@@ -146,11 +156,7 @@ def _withdraw_thinly_held(ids: np.ndarray, reason: np.ndarray, lat, msgs: list[s
     lab = np.flatnonzero(ids >= 0)
     if len(lab) == 0:
         return ids, reason
-    has = np.zeros(len(lat.xy), bool)
-    has[ids[lab]] = True
-    nb = lat.nbr[ids[lab]]
-    held = np.count_nonzero((nb >= 0) & has[np.maximum(nb, 0)], axis=1)
-    drop = (held < HELD_BY) & ~np.isin(ids[lab], lat.outer_ring)
+    drop = ~held(ids, lab, lat)
     if not drop.any():
         return ids, reason
     ids, reason = ids.copy(), reason.copy()
