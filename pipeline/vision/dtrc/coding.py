@@ -14,8 +14,8 @@ from pipeline.vision.dtrc.mesh import OUTLIER_NN_FACTOR, _median, _nn_and_mesh
 from pipeline.vision.dtrc.peel import _peel_flat
 from pipeline.vision.dtrc.prediction import _shift_by_prediction, _verify_and_grow
 from pipeline.vision.dtrc.proposals import _certain_ids
-from pipeline.vision.dtrc.ring_codes import (_code_by_angles, _design_flat, _design_order, _design_rings,
-                                             _ring_by_angle, _shift_code, _unmatched)
+from pipeline.vision.dtrc.ring_codes import (_annulus_rotation, _code_by_angles, _design_flat, _design_order,
+                                             _design_radii, _design_rings, _ring_by_angle, _shift_code, _unmatched)
 from pipeline.vision.identity import R_NO_BLOB, REASONS, use_triangulation
 
 
@@ -142,6 +142,9 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
     # coded by their angles in one compiled pass; it stops at a layer needing the cases below.
     failed = bool(n_leftover or n_dropped)
     layer, theta = _code_by_angles(pts, ring_flat, ring_off, 0, 0.0, ids, d_ids_flat, d_ang_flat, d_off, d_gap)
+    if layer == 0 and design.pattern.kind == "circular" and found and found[0] == expected[0]:
+        # no centre: the rings about it fix the rotation jointly (each alone only modulo its pitch)
+        theta = _annulus_rotation(pts, active, ring_flat[:found[0]], d_ang_flat, d_off, _design_radii(design)) or 0.0
     while layer < n_layers:
         d_ids, _, d_ang = drings[layer]
         r = n_layers - 1 - layer

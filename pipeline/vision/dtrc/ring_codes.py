@@ -58,6 +58,13 @@ def _marker_count(design: SensorDesign) -> int:
 _FLAT_CACHE: dict[tuple, tuple] = {}
 
 
+def _design_radii(design: SensorDesign) -> np.ndarray:
+    """Each layer's mean design radius about the centre (mm; 0 for the centre)."""
+    xy, rings = _design_rings(design)
+    c = xy[rings[0][0]].mean(axis=0)
+    return np.array([float(np.hypot(*(p - c).T).mean()) for _, p, _ in rings])
+
+
 def _design_flat(design: SensorDesign):
     """The design rings of :func:`_design_rings` flattened for the compiled coder: ids (M,), angles
     (M,), layer offsets (layers + 1,) and each layer's gap scale (:func:`_design_gap_scale`; 1 for the
@@ -223,3 +230,65 @@ def _unmatched(ids, n_markers):
         if i >= 0:
             present[i] = True
     return np.flatnonzero(~present).astype(np.int64)
+
+
+#: The rotation read from a circular pattern's rings without its centre is taken when the rings' phases
+#: agree with it to this many ring spacings RMS (each ring at its radius, weighted by its blobs). It is
+#: a proposal: a twist of the rings that fits nearly as well (the outer rings of 48 and 42 markers
+#: turned by one slot each stay within 0.07 spacings RMS) is told apart by the certainty rule's
+#: centre test (:func:`pipeline.vision.identity.centring.annulus_twist`).
+ANNULUS_FIT = 0.05
+#: A blob is taken as a member of the design ring whose radius (in the outer ring's radii, the
+#: outer ring whitened to a circle) is nearest, when within this many ring spacings of it.
+ANNULUS_BAND = 0.3
+ANNULUS_STEP = math.radians(0.05)
+ANNULUS_RANGE = math.radians(30.0)
+
+
+def _annulus_rotation(pts, active, outer, d_ang, d_off, d_radius):
+    """The in-plane rotation (rad) of a circular pattern read without its centre, or None.
+
+    ``outer``: the blobs of the complete outer ring (peel 0). Its centroid and second moments map the
+    view so that the outer ring is a circle of the design's outer radius (a camera's perspective and a
+    bulge keep rings nearly concentric ellipses); each other active blob is taken for the design ring
+    of nearest radius (``d_radius`` per layer) when within :data:`ANNULUS_BAND`. A ring of n equally
+    spaced markers fixes the rotation only modulo its pitch 2 pi / n, through the phase
+    ``arg sum exp(i n phi)`` of its blobs against the design ring's; rings of different sizes fix it
+    jointly (two consecutive rings of 6k and 6k + 6 markers modulo 60 deg). The rotation within
+    +-30 deg that the blobs agree on best, each at its ring's radius (a distance in pixels), is taken
+    when the fit is tight.
+    """
+    n_layers = len(d_off) - 1
+    p = pts[outer]
+    c = p.mean(axis=0)
+    w, v = np.linalg.eigh(np.cov((p - c).T))
+    if not w.min() > 0:
+        return None
+    white = v @ np.diag(1 / np.sqrt(w)) @ v.T
+    q = (pts - c) @ white.T
+    scale = d_radius[n_layers - 1] / float(np.hypot(*q[outer].T).mean())
+    q *= scale
+    rad = np.hypot(*q.T)
+    phi = np.arctan2(q[:, 1], q[:, 0])
+    ring = np.searchsorted((d_radius[1:] + d_radius[:-1]) / 2, rad)
+    spacing = np.diff(d_radius).min()
+    member = active & (ring >= 1) & (np.abs(rad - d_radius[ring.clip(0, n_layers - 1)]) <= ANNULUS_BAND * spacing)
+    member[outer] = True
+    ring[outer] = n_layers - 1
+    grid = np.arange(-ANNULUS_RANGE, ANNULUS_RANGE + ANNULUS_STEP / 2, ANNULUS_STEP)
+    cost = np.zeros_like(grid)
+    used = 0
+    for layer in np.unique(ring[member]):
+        on = member & (ring == layer)
+        n = d_off[layer + 1] - d_off[layer]
+        if np.count_nonzero(on) < 3:
+            continue
+        design_phase = np.angle(np.exp(1j * n * d_ang[d_off[layer]:d_off[layer + 1]]).sum())
+        t = (np.angle(np.exp(1j * n * phi[on]).sum()) - design_phase) / n
+        cost += ((np.angle(np.exp(1j * n * (grid - t))) / n * d_radius[layer]) ** 2) * np.count_nonzero(on)
+        used += np.count_nonzero(on)
+    if used == 0:
+        return None
+    rms = np.sqrt(cost / used) / spacing
+    i = int(np.argmin(rms))
+    return None if rms[i] > ANNULUS_FIT else float(grid[i])

@@ -72,8 +72,9 @@ def read_from_rest(blobs: Blobs, design: SensorDesign, coding: RingCoding,
     the calibration puts the undeformed skin's markers, their ids) wherever ring coding left a blob (or
     slot) unidentified.
 
-    * Ring coding left more than a tenth unidentified (:data:`REST_BELOW`; e.g. a circular pattern
-      with its centre hidden, which ring coding anchors by its first three rings): the rest pattern's
+    * Ring coding left more than a tenth unidentified (:data:`REST_BELOW`; e.g. a pattern whose middle
+      a press crowds beyond ring peeling, or a circular pattern with its centre hidden and the rings
+      about it too thinned to fix their turn): the rest pattern's
       reading is taken when it explains the view, identifying all but a tenth of the blobs (or slots);
       a partial reading does not replace ring coding's.
     * Ring coding read the view but left some markers unidentified (next to an occluded patch, where

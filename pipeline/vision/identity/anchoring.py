@@ -11,11 +11,13 @@ import numba
 import numpy as np
 
 from pipeline.vision.identity.consistency import _consistency
-from pipeline.vision.identity.centring import _centre_xy, _no_better_centre, _ring_gather
+from pipeline.vision.identity.centring import (_centre_xy, _no_better_centre, _ring_gather, annulus_holds,
+                                               centre_rings_covered)
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_CENTRE,
                                                 RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM,
                                                 RING_ROUND, RING_SHAPE)
 from pipeline.vision.identity.fits import _design_half, _fit, _fit_sums, _gather, _image_half
+from pipeline.vision.identity.lattice import RING_TWIST
 from pipeline.vision.identity.neighbours import _adj
 from pipeline.vision.nearest import nearest
 
@@ -149,7 +151,11 @@ def _centre_holds(pts, slot_of, members, lat) -> bool:
     About a marker of ring 1 the pattern also shows rings of about six and twelve markers, but its
     third ring is not eighteen markers 20 deg apart; where a press bends the rings and defects thin
     them to the coverage allowed, the same blobs read about a marker of ring 1 must not fit them
-    better (:func:`~pipeline.vision.identity.centring._no_better_centre`)."""
+    better (:func:`~pipeline.vision.identity.centring._no_better_centre`). A patch without those rings
+    (the centre hidden) is centred by three rings further out instead
+    (:func:`~pipeline.vision.identity.centring.annulus_holds`)."""
+    if not centre_rings_covered(slot_of, members, lat.layer_of):
+        return annulus_holds(pts, slot_of, members, lat)
     return (_centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
             and _no_better_centre(pts, slot_of, members, lat))
 
@@ -228,18 +234,26 @@ def _centre_kernel(pts, slot_of, members, xy, layer_of, ring_round, ring_centre)
 
 def _anchored(pts, slot_of, members, lat) -> bool:
     """Is the patch ``members`` (blob indices) excluded from every alternative reading?"""
-    if not lat.translation_lattice and not _centre_holds(pts, slot_of, members, lat):
+    alt, alt_first = lat.alt, lat.alt_first
+    if not lat.translation_lattice:
         # rings of equally spaced markers read one ring further out, turned, or shifted by a
         # marker are locally almost a hexagonal lattice; only the rings about the centre fix the
         # reading: they must be concentric circles about one point
-        return False
-    if len(lat.alt) == 0:
+        if not _centre_holds(pts, slot_of, members, lat):
+            return False
+        if not centre_rings_covered(slot_of, members, lat.layer_of):
+            # read without the centre rings: far out, turning every ring by a slot or two leaves the
+            # neighbourhoods almost intact, so local evidence cannot exclude it; the rings' relative
+            # turns (:func:`annulus_holds`) did
+            keep = np.array([not name.startswith(RING_TWIST) for name in lat.alt_names])
+            alt, alt_first = alt[keep], alt_first[keep]
+    if len(alt) == 0:
         return True
     adj = _adj(pts)
     # without the blob search first (usually enough evidence), then with it
     for search in (False, True) if lat.translation_lattice else (True,):
         if _alternatives_excluded(pts, search, adj[0], adj[1], slot_of,
-                                  members, lat.alt, lat.alt_first, lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab,
+                                  members, alt, alt_first, lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab,
                                   lat.fan, lat.fan_closed, lat.pitch, GATE, ANCHOR_EVIDENCE):
             return True
     return False

@@ -8,8 +8,9 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.identity.constants import (RING_ALT_COVERAGE, RING_ALT_RATIO, RING_COVERAGE,
-                                                RING_FIT_NO_COLLINEARITY_MM, RING_MIN_MARKERS)
+from pipeline.vision.identity.constants import (ANNULUS_COVERAGE, ANNULUS_TWIST, RING_ALT_COVERAGE, RING_ALT_RATIO,
+                                                RING_CENTRE, RING_COVERAGE, RING_FIT_NO_COLLINEARITY_MM,
+                                                RING_MIN_MARKERS, RING_ROUND, RING_SHAPE)
 from pipeline.vision.identity.fits import _design_half, _fit_sums, _image_half
 
 
@@ -120,3 +121,74 @@ def _no_better_centre(pts, slot_of, members, lat) -> bool:
         if r > 0 and r0 > RING_ALT_RATIO * r:
             return False
     return True
+
+
+def _covered(slot_of, members, layer_of, k, min_cov) -> np.ndarray:
+    """The blobs of ``members`` that ``slot_of`` puts on ring ``k`` (empty when fewer than ``min_cov`` of
+    the ring's slots or than :data:`RING_MIN_MARKERS`)."""
+    on = members[layer_of[slot_of[members]] == k]
+    size = int(np.count_nonzero(layer_of == k))
+    return on if len(on) >= max(math.ceil(min_cov * size), RING_MIN_MARKERS) else on[:0]
+
+
+def centre_rings_covered(slot_of, members, layer_of) -> bool:
+    """Rings 1-3 each hold :data:`RING_COVERAGE` of their slots (the centre test can be made)."""
+    return all(len(_covered(slot_of, members, layer_of, k, RING_COVERAGE)) for k in (1, 2, 3))
+
+
+def annulus_holds(pts, slot_of, members, lat) -> bool:
+    """:func:`annulus_twist` within :data:`ANNULUS_TWIST`."""
+    twist = annulus_twist(pts, slot_of, members, lat)
+    return twist is not None and twist <= ANNULUS_TWIST
+
+
+def annulus_twist(pts, slot_of, members, lat) -> float | None:
+    """The centre test of a circular pattern read without its centre rings (a glare spot or an
+    occluder over the middle of the skin): three consecutive rings further out, each holding
+    :data:`ANNULUS_COVERAGE` of its slots, are rings of equally spaced markers about one point seen
+    through one smooth map, as :func:`~pipeline.vision.identity.anchoring._centre_holds` asks of rings
+    1-3 (:data:`RING_ROUND`, :data:`RING_CENTRE`, :data:`RING_SHAPE`, in image pitches), and they are
+    not twisted against each other.
+
+    Far from the centre a ring of n markers turned by one slot is still a ring, its affine fit as good,
+    and its neighbours barely notice (rings k and k + 1 turned by one slot each differ by
+    60 / (k (k + 1)) deg); only the rings' relative turns tell the reading from a twisted one. Each ring's
+    affine map has a rotation; a reading with every ring turned by one slot spreads those rotations by
+    2 pi (1 / n_k0 - 1 / n_k2) (5 deg for rings 4-6, 2.5 deg for rings 6-8) more than the true one.
+    Returns the spread in units of that twist (:func:`annulus_holds` keeps it below
+    :data:`ANNULUS_TWIST`, so that the true reading and a twisted one cannot both pass), or None where the
+    rings fail the other tests or three such rings are not there."""
+    layer_of = lat.layer_of
+    top = int(layer_of.max())
+    c0 = np.array(_centre_xy(lat.xy, layer_of))
+    for k0 in range(2, top - 1):
+        rings = [_covered(slot_of, members, layer_of, k, ANNULUS_COVERAGE) for k in (k0, k0 + 1, k0 + 2)]
+        if all(len(r) for r in rings):
+            break
+    else:
+        return None
+    L, cen, turn, worst = [], [], [], 0.0
+    for k, on in zip((k0, k0 + 1, k0 + 2), rings):
+        D = np.c_[lat.xy[slot_of[on]] - c0, np.ones(len(on))]
+        sol, *_ = np.linalg.lstsq(D, pts[on], rcond=None)
+        L.append(sol[:2].T)
+        cen.append(sol[2])
+        worst = max(worst, float(np.hypot(*(D @ sol - pts[on]).T).max()))
+        turn.append(math.atan2(L[-1][1, 0] - L[-1][0, 1], L[-1][0, 0] + L[-1][1, 1]))
+    ring0 = layer_of == k0
+    pitch = float(np.hypot(*(pts[rings[0]] - cen[0]).T).mean()
+                  / (np.hypot(*(lat.xy[ring0] - c0).T).mean() / lat.pitch))   # image pitch at ring k0
+    if worst > RING_ROUND * pitch:
+        return None
+    for k in (1, 2):
+        if np.hypot(*(cen[k] - cen[0])) > RING_CENTRE * pitch:
+            return None
+        sc = float(np.sum(L[k] * L[0]) / np.sum(L[0] * L[0]))
+        if not sc > 0 or np.linalg.norm(L[k] - sc * L[0]) > RING_SHAPE * sc * np.linalg.norm(L[0]):
+            return None
+    centre = members[layer_of[slot_of[members]] == 0]
+    if len(centre) and np.hypot(*(pts[centre[0]] - cen[0])) > RING_CENTRE * pitch:
+        return None
+    spread = np.ptp(np.unwrap(np.array(turn)))
+    n = [int(np.count_nonzero(layer_of == k)) for k in (k0, k0 + 2)]
+    return float(spread / (2 * math.pi * (1 / n[0] - 1 / n[1])))

@@ -57,6 +57,8 @@ class Lattice:
 
 
 _CACHE: dict = {}
+#: How the alternative readings that turn every ring by a few slots are named (``Lattice.alt_names``).
+RING_TWIST = "each ring turned by"
 
 
 def lattice_of(design) -> Lattice:
@@ -113,7 +115,7 @@ def lattice_of(design) -> Lattice:
             if len(ids) > 1:
                 m[ids] = ids[(np.arange(len(ids)) + j) % len(ids)]
         maps.append(m)
-        names.append(f"each ring turned by {j:+d} slot(s)")
+        names.append(f"{RING_TWIST} {j:+d} slot(s)")
     # rings read one ring further out / in (slot -> the slot of the next ring at the nearest angle):
     # on a circular pattern a patch away from the centre is locally the same either way
     ring_ids = [np.flatnonzero(layers == lay) for lay in range(int(layers.max()) + 1)]
