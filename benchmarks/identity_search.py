@@ -16,6 +16,13 @@ calibration and the refracting stack) with the defects of the identification ben
 (:func:`benchmarks.experiments.identification.add_defects`). A view is in scope when no two markers are
 closer than half the median separation (such pins merge in detection). Prints the views in scope, the wrong
 ids and the views holding them, and the coverage; ``--out FILE`` writes every view's figures as JSON.
+
+``--hidden LOW HIGH`` also hides, in each draw, a fraction of the markers in that range about a point within 1.5
+separations of the pattern's centre (a glare spot; no spurious blob within half a separation of a hidden
+marker, as for a missing one), and on a circular pattern reports the twist of every true reading that lacks
+the centre rings: what the centre test of such a reading bounds (``ANNULUS_TWIST``; the search recorded in
+docs/IDENTIFICATION.md: ``--draws 4000 --seed 29 --sigma 1.5 6 --off 3 --rate 0.05 --lateral 0.5 --hidden 0.05
+0.25``).
 """
 
 from __future__ import annotations
@@ -34,8 +41,11 @@ DEPTH_MM = 5.0
 
 
 def pressed_view(design, seed: int, sigma_mm: float, lateral: float, rate: float,
-                 centre_xy_mm: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(blob centres px, true id per blob (-1 spurious), in scope) of one draw (module notes)."""
+                 centre_xy_mm: tuple[float, float] = (0.0, 0.0), hidden: float = 0.0,
+                 hidden_at: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(blob centres px, true id per blob (-1 spurious), in scope) of one draw (module notes); ``hidden``: the
+    fraction of the markers hidden (a glare spot), those nearest the view of the pattern's centre moved by
+    ``hidden_at`` median separations."""
     from benchmarks.experiments.identification import add_defects
     from pipeline.geometry.refraction import project_through_stack
     from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration
@@ -43,14 +53,22 @@ def pressed_view(design, seed: int, sigma_mm: float, lateral: float, rate: float
     xyz = gaussian_press_markers(design, DEPTH_MM, sigma_mm=sigma_mm, lateral=lateral, centre_xy_mm=centre_xy_mm)
     uv = np.ascontiguousarray(project_through_stack(xyz, nominal_calibration(design), design)[0])
     nn = np.sort(np.hypot(*(uv[:, None, :] - uv[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+    spot = uv[np.argmin(np.hypot(*design.rest_markers_mm()[:, :2].T))] + np.asarray(hidden_at) * np.median(nn)
+    hide = np.argsort(np.hypot(*(uv - spot).T))[:int(round(hidden * len(uv)))]
     pts, truth, _ = add_defects(uv, np.random.default_rng(seed), missing=rate, spurious=rate,
-                                px_per_sep=float(np.median(nn)))
+                                px_per_sep=float(np.median(nn)), hidden=hide)
     return pts, truth, bool(nn.min() >= 0.5 * np.median(nn))
 
 
 def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral: float = 0.6, rate: float = 0.1,
-           off_mm: float = 6.0, progress: bool = False) -> dict:
-    """Run the search; returns {"in_scope", "wrong_ids", "wrong_views", "coverage", "seconds", "views": [...]}."""
+           off_mm: float = 6.0, hidden=(0.0, 0.0), progress: bool = False) -> dict:
+    """Run the search; returns {"in_scope", "wrong_ids", "wrong_views", "coverage", "seconds", "views": [...]}.
+
+    With ``hidden`` (a fraction range, upper bound above 0) each draw also hides a fraction of the markers in
+    that range about a point within 1.5 separations of the pattern's centre, and, for a circular pattern, each
+    view whose true reading lacks the centre rings records that reading's twist
+    (:func:`pipeline.vision.identity.centring.annulus_twist`: what the certainty rule's centre test measures;
+    the result adds "twist": {"readings", "max", "p99", "refused"})."""
     from tqdm import tqdm
 
     from pipeline.design import load_design
@@ -63,6 +81,8 @@ def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral
         raise UserError(f"--sigma {sigma[0]:g} {sigma[1]:g}: need 0 < low <= high (mm)")
     if not (0 <= lateral and 0 <= rate < 0.5 and 0 <= off_mm):
         raise UserError("--lateral, --rate and --off must be >= 0 (rate below 0.5)")
+    if not 0 <= hidden[0] <= hidden[1] < 0.5:
+        raise UserError(f"--hidden {hidden[0]:g} {hidden[1]:g}: need 0 <= low <= high < 0.5")
     design = load_design(design_name)
     rng = np.random.default_rng(seed)
     views, t0 = [], time.perf_counter()
@@ -71,7 +91,11 @@ def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral
         sg, lt, rt = float(rng.uniform(*sigma)), float(rng.uniform(0, lateral)), float(rng.uniform(0, rate))
         r, a = float(rng.uniform(0, off_mm)), float(rng.uniform(0, 2 * np.pi))
         centre = (r * np.cos(a), r * np.sin(a))
-        pts, truth, in_scope = pressed_view(design, s, sg, lt, rt, centre)
+        hide, at = 0.0, (0.0, 0.0)
+        if hidden[1] > 0:
+            hide, ra, aa = float(rng.uniform(*hidden)), float(rng.uniform(0, 1.5)), float(rng.uniform(0, 2 * np.pi))
+            at = (ra * np.cos(aa), ra * np.sin(aa))
+        pts, truth, in_scope = pressed_view(design, s, sg, lt, rt, centre, hide, at)
         if not in_scope:
             continue
         ids = code_rings(Blobs(pts, np.full(len(pts), 3.0), np.ones(len(pts))), design).ids
@@ -80,11 +104,34 @@ def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral
                       "present": int(np.count_nonzero(truth >= 0)),
                       "correct": int(np.count_nonzero(ids[coded] == truth[coded])),
                       "wrong": int(np.count_nonzero(ids[coded] != truth[coded]))})
+        if hidden[1] > 0:
+            views[-1].update(hidden=hide, hidden_at=list(at), twist=_true_twist(pts, truth, design))
     present = sum(v["present"] for v in views)
-    return {"design": design.name, "draws": draws, "seed": seed, "in_scope": len(views),
-            "wrong_ids": sum(v["wrong"] for v in views), "wrong_views": sum(v["wrong"] > 0 for v in views),
-            "coverage": sum(v["correct"] for v in views) / present if present else float("nan"),
-            "seconds": time.perf_counter() - t0, "views": views}
+    out = {"design": design.name, "draws": draws, "seed": seed, "in_scope": len(views),
+           "wrong_ids": sum(v["wrong"] for v in views), "wrong_views": sum(v["wrong"] > 0 for v in views),
+           "coverage": sum(v["correct"] for v in views) / present if present else float("nan"),
+           "seconds": time.perf_counter() - t0, "views": views}
+    if hidden[1] > 0:
+        from pipeline.vision.identity.constants import ANNULUS_TWIST
+
+        tw = np.array([v["twist"] for v in views if v["twist"] is not None])
+        out["twist"] = {"readings": len(tw), "max": float(tw.max()) if len(tw) else None,
+                        "p99": float(np.percentile(tw, 99)) if len(tw) else None,
+                        "refused": int(np.count_nonzero(tw > ANNULUS_TWIST))}
+    return out
+
+
+def _true_twist(pts: np.ndarray, truth: np.ndarray, design) -> float | None:
+    """The twist the centre test measures on the view's true reading when it lacks the centre rings (circular
+    patterns), else None."""
+    from pipeline.vision.identity import lattice_of
+    from pipeline.vision.identity.centring import annulus_twist, centre_rings_covered
+
+    lat = lattice_of(design)
+    members = np.flatnonzero(truth >= 0)
+    if lat.translation_lattice or centre_rings_covered(truth, members, lat.layer_of):
+        return None
+    return annulus_twist(pts, truth, members, lat)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,16 +143,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lateral", type=float, default=0.6)
     ap.add_argument("--rate", type=float, default=0.1)
     ap.add_argument("--off", type=float, default=6.0, help="largest distance of the press centre from the axis, mm")
+    ap.add_argument("--hidden", type=float, nargs=2, default=(0.0, 0.0), metavar=("LOW", "HIGH"),
+                    help="hide a fraction of the markers in this range about a point near the pattern's centre")
     ap.add_argument("--out", default=None, help="write every view's figures as JSON")
     args = ap.parse_args(argv)
     try:
         res = search(args.design, args.draws, args.seed, sigma=tuple(args.sigma), lateral=args.lateral,
-                     rate=args.rate, off_mm=args.off, progress=sys.stderr.isatty())
+                     rate=args.rate, off_mm=args.off, hidden=tuple(args.hidden), progress=sys.stderr.isatty())
     except UserError as exc:
         print(f"identity_search: {exc}", file=sys.stderr)
         return 2
     print(f"{res['design']}: {res['in_scope']} of {res['draws']} views in scope, {res['wrong_ids']} wrong id(s) in "
           f"{res['wrong_views']} view(s), coverage {100 * res['coverage']:.1f} %, {res['seconds']:.0f} s")
+    if "twist" in res:
+        tw = res["twist"]
+        print(f"  true readings without the centre rings: {tw['readings']}, their twist at most "
+              f"{tw['max'] if tw['max'] is None else round(tw['max'], 3)} (99 % below "
+              f"{tw['p99'] if tw['p99'] is None else round(tw['p99'], 3)}), {tw['refused']} beyond the rule's bound")
     for v in res["views"]:
         if v["wrong"]:
             print(f"  wrong: seed {v['seed']}, sigma {v['sigma_mm']:.4f} mm, lateral {v['lateral']:.4f}, rate "

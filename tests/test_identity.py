@@ -630,6 +630,14 @@ def test_the_identity_search_draws_the_views_of_these_tests(capsys):
     assert res["in_scope"] == len(res["views"]) <= 6 and res["wrong_ids"] == 0
     assert all(v["correct"] + v["wrong"] <= v["present"] + round(v["rate"] * 217) for v in res["views"])
     assert main(["--draws", "0"]) == 2 and "at least one draw" in capsys.readouterr().err
+    # a glare spot over the middle: the hidden markers are gone, and the true readings' twist is measured
+    design = DESIGNS["circular217_dome"]
+    pts, truth, _ = pressed_view(design, seed, sigma, lateral, 0.0, centre, hidden=0.15)
+    centre_id = int(np.argmin(np.hypot(*design.rest_markers_mm()[:, :2].T)))
+    assert np.count_nonzero(truth >= 0) == 217 - round(0.15 * 217) and centre_id not in truth.tolist()
+    res = search("circular217_dome", 4, 29, sigma=(1.5, 6.0), off_mm=3.0, rate=0.05, hidden=(0.1, 0.2))
+    assert res["wrong_ids"] == 0 and 0 < res["twist"]["readings"] <= res["in_scope"]
+    assert res["twist"]["max"] < 0.5 and all(0.1 <= v["hidden"] <= 0.2 for v in res["views"])
 
 
 _STEREO_KEPT = pytest.mark.xfail(strict=True, reason="known wrong pairs: the spurious blob stands where the other "

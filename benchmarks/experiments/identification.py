@@ -106,13 +106,14 @@ def view_px(design, rng: np.random.Generator, *, rot_deg: float | None = None, j
 
 
 def add_defects(uv: np.ndarray, rng: np.random.Generator, *, missing: float = 0.0, spurious: float = 0.0,
-                occlusion: float = 0.0, px_per_sep: float = PX_PER_SEP):
-    """Remove and add blobs. Returns (blob centres (M, 2) in random order, true id per blob (-1
-    spurious), ids removed)."""
+                occlusion: float = 0.0, px_per_sep: float = PX_PER_SEP, hidden=()):
+    """Remove and add blobs (``hidden``: ids removed besides, as an occluded patch). Returns (blob centres
+    (M, 2) in random order, true id per blob (-1 spurious), ids removed)."""
     from scipy.spatial import cKDTree
 
     n = len(uv)
     gone = set(rng.choice(n, int(round(missing * n)), replace=False).tolist()) if missing else set()
+    gone |= {int(i) for i in hidden}
     if occlusion:
         centre = uv[rng.integers(n)] if rng.random() < 0.5 else uv[np.argmax(np.hypot(*(uv - uv.mean(0)).T))]
         gone |= set(np.argsort(np.hypot(*(uv - centre).T))[:int(round(occlusion * n))].tolist())
