@@ -96,10 +96,10 @@ def _ids_where_they_are(res, design, calib, truth):
 @pytest.mark.parametrize("name, depth", [("hexagon127", 0.0), ("hexagon127", 2.0), ("circular217_dome", 0.0),
                                          ("circular217_dome", 2.0)])
 def test_a_first_frame_with_a_hidden_patch_is_anchored_by_the_rest_pattern(name, depth):
-    """A first frame with the centre third of the pattern hidden (circular patterns anchor their
-    rings on the centre: ring coding alone identifies none of the rest) and pressed 0 or 2 mm beside
-    the patch: the rest pattern, projected through the calibration, anchors the reading, and every id
-    given is that marker's."""
+    """A first frame with the centre third of the pattern hidden (a circular pattern's rings are then
+    centred by the rings about the hole, each of hexagon127's by its lattice) and pressed 0 or 2 mm beside
+    the patch: read as a first frame (ring coding, the rest pattern projected through the calibration where
+    ring coding leaves the view short), every id given is that marker's."""
     design = load_design(name)
     calib = nominal_calibration(design)
     rest = design.rest_markers_mm()
