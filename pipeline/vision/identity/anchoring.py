@@ -156,8 +156,26 @@ def _centre_holds(pts, slot_of, members, lat) -> bool:
     (:func:`~pipeline.vision.identity.centring.annulus_holds`)."""
     if not centre_rings_covered(slot_of, members, lat.layer_of):
         return annulus_holds(pts, slot_of, members, lat)
+    return _centre_rings_hold(pts, slot_of, members, lat)
+
+
+def _centre_rings_hold(pts, slot_of, members, lat) -> bool:
+    """:func:`_centre_holds` on rings 1-3 (the patch holds them)."""
     return (_centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, RING_ROUND, RING_CENTRE)
             and _no_better_centre(pts, slot_of, members, lat))
+
+
+_UNTWISTED: dict = {}
+
+
+def _untwisted(lat) -> tuple[np.ndarray, np.ndarray]:
+    """``lat.alt`` and ``lat.alt_first`` without the readings that turn every ring by a few slots; per
+    lattice, computed once."""
+    hit = _UNTWISTED.get(id(lat))
+    if hit is None or hit[0] is not lat:
+        keep = np.array([not name.startswith(RING_TWIST) for name in lat.alt_names], bool)
+        hit = _UNTWISTED[id(lat)] = (lat, lat.alt[keep], lat.alt_first[keep])
+    return hit[1], hit[2]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -239,14 +257,16 @@ def _anchored(pts, slot_of, members, lat) -> bool:
         # rings of equally spaced markers read one ring further out, turned, or shifted by a
         # marker are locally almost a hexagonal lattice; only the rings about the centre fix the
         # reading: they must be concentric circles about one point
-        if not _centre_holds(pts, slot_of, members, lat):
-            return False
-        if not centre_rings_covered(slot_of, members, lat.layer_of):
+        if centre_rings_covered(slot_of, members, lat.layer_of):
+            if not _centre_rings_hold(pts, slot_of, members, lat):
+                return False
+        elif annulus_holds(pts, slot_of, members, lat):
             # read without the centre rings: far out, turning every ring by a slot or two leaves the
             # neighbourhoods almost intact, so local evidence cannot exclude it; the rings' relative
             # turns (:func:`annulus_holds`) did
-            keep = np.array([not name.startswith(RING_TWIST) for name in lat.alt_names])
-            alt, alt_first = alt[keep], alt_first[keep]
+            alt, alt_first = _untwisted(lat)
+        else:
+            return False
     if len(alt) == 0:
         return True
     adj = _adj(pts)

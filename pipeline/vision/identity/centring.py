@@ -46,6 +46,18 @@ def _ring_gather(slot_of, members, layer_of, k, min_cov, sel, slots):
 
 
 @numba.njit(cache=True, nogil=True)
+def _ring_map(pts, slots, sel, m, xy, c0x, c0y, acc):
+    """The least-squares affine map of a ring's design slots ``slots[:m]`` (about the design centre (c0x, c0y))
+    onto its blobs ``sel[:m]``: (image of the centre u, v, L00, L01, L10, L11); ``acc`` (12,) work array."""
+    acc = _fit_sums(xy, pts, slots, sel, m, c0x, c0y, 0.0, 0.0, acc)
+    _, mx, my, i00, i01, i11 = _design_half(acc[0], acc[1], acc[2], acc[5], acc[6], acc[7],
+                                            RING_FIT_NO_COLLINEARITY_MM)
+    mu, mv, l00, l01, l10, l11 = _image_half(acc[0], mx, my, acc[3], acc[4], acc[8], acc[9], acc[10], acc[11],
+                                             i00, i01, i11)
+    return mu - l00 * mx - l01 * my, mv - l10 * mx - l11 * my, l00, l01, l10, l11
+
+
+@numba.njit(cache=True, nogil=True)
 def _ring_residual(pts, slot_of, members, xy, layer_of, min_cov):
     """The largest residual of the per-ring affine fits of rings 1-3 (design ring -> the blobs of
     ``members`` that ``slot_of`` puts on it), over the mean radius of ring 1 about its fit's centre, as
@@ -60,13 +72,7 @@ def _ring_residual(pts, slot_of, members, xy, layer_of, min_cov):
         m = _ring_gather(slot_of, members, layer_of, k, min_cov, sel, slots)
         if m < 0:
             return -1.0
-        acc = _fit_sums(xy, pts, slots, sel, m, c0x, c0y, 0.0, 0.0, acc)
-        _, mx, my, i00, i01, i11 = _design_half(acc[0], acc[1], acc[2], acc[5], acc[6], acc[7],
-                                                RING_FIT_NO_COLLINEARITY_MM)
-        mu, mv, l00, l01, l10, l11 = _image_half(acc[0], mx, my, acc[3], acc[4], acc[8], acc[9], acc[10], acc[11],
-                                                 i00, i01, i11)
-        cu = mu - l00 * mx - l01 * my
-        cv = mv - l10 * mx - l11 * my
+        cu, cv, l00, l01, l10, l11 = _ring_map(pts, slots, sel, m, xy, c0x, c0y, acc)
         r = 0.0
         rsum = 0.0
         for i in range(m):
@@ -123,17 +129,17 @@ def _no_better_centre(pts, slot_of, members, lat) -> bool:
     return True
 
 
-def _covered(slot_of, members, layer_of, k, min_cov) -> np.ndarray:
-    """The blobs of ``members`` that ``slot_of`` puts on ring ``k`` (empty when fewer than ``min_cov`` of
-    the ring's slots or than :data:`RING_MIN_MARKERS`)."""
-    on = members[layer_of[slot_of[members]] == k]
-    size = int(np.count_nonzero(layer_of == k))
-    return on if len(on) >= max(math.ceil(min_cov * size), RING_MIN_MARKERS) else on[:0]
+def _covered(slot_of, members, layer_of, k, min_cov) -> tuple[np.ndarray, np.ndarray]:
+    """(blobs, their slots) of ``members`` that ``slot_of`` puts on ring ``k`` (:func:`_ring_gather`; empty when
+    fewer than ``min_cov`` of the ring's slots or than :data:`RING_MIN_MARKERS`)."""
+    sel, slots = np.empty(len(members), np.int64), np.empty(len(members), np.int64)
+    m = max(_ring_gather(slot_of, members, layer_of, k, min_cov, sel, slots), 0)
+    return sel[:m], slots[:m]
 
 
 def centre_rings_covered(slot_of, members, layer_of) -> bool:
     """Rings 1-3 each hold :data:`RING_COVERAGE` of their slots (the centre test can be made)."""
-    return all(len(_covered(slot_of, members, layer_of, k, RING_COVERAGE)) for k in (1, 2, 3))
+    return all(len(_covered(slot_of, members, layer_of, k, RING_COVERAGE)[0]) for k in (1, 2, 3))
 
 
 def annulus_holds(pts, slot_of, members, lat) -> bool:
@@ -163,20 +169,20 @@ def annulus_twist(pts, slot_of, members, lat) -> float | None:
     c0 = np.array(_centre_xy(lat.xy, layer_of))
     for k0 in range(2, top - 1):
         rings = [_covered(slot_of, members, layer_of, k, ANNULUS_COVERAGE) for k in (k0, k0 + 1, k0 + 2)]
-        if all(len(r) for r in rings):
+        if all(len(on) for on, _ in rings):
             break
     else:
         return None
     L, cen, turn, worst = [], [], [], 0.0
-    for k, on in zip((k0, k0 + 1, k0 + 2), rings):
-        D = np.c_[lat.xy[slot_of[on]] - c0, np.ones(len(on))]
-        sol, *_ = np.linalg.lstsq(D, pts[on], rcond=None)
-        L.append(sol[:2].T)
-        cen.append(sol[2])
-        worst = max(worst, float(np.hypot(*(D @ sol - pts[on]).T).max()))
-        turn.append(math.atan2(L[-1][1, 0] - L[-1][0, 1], L[-1][0, 0] + L[-1][1, 1]))
+    acc = np.empty(12)
+    for on, slots in rings:
+        cu, cv, l00, l01, l10, l11 = _ring_map(pts, slots, on, len(on), lat.xy, c0[0], c0[1], acc)
+        L.append(np.array([[l00, l01], [l10, l11]]))
+        cen.append(np.array([cu, cv]))
+        worst = max(worst, float(np.hypot(*((lat.xy[slots] - c0) @ L[-1].T + cen[-1] - pts[on]).T).max()))
+        turn.append(math.atan2(l10 - l01, l00 + l11))
     ring0 = layer_of == k0
-    pitch = float(np.hypot(*(pts[rings[0]] - cen[0]).T).mean()
+    pitch = float(np.hypot(*(pts[rings[0][0]] - cen[0]).T).mean()
                   / (np.hypot(*(lat.xy[ring0] - c0).T).mean() / lat.pitch))   # image pitch at ring k0
     if worst > RING_ROUND * pitch:
         return None
