@@ -21,6 +21,12 @@ not rotated; an interior marker held by :data:`~pipeline.vision.dtrc.proposals.H
 neighbours): a blob proposed as its neighbour sits a whole separation from where its neighbours put it
 and is refused. The receiving
 view's own ids are never changed; an id is only added.
+
+In a sequence the previous frame's pairs say more. Where crests crowd the pins, a view's ids come from the
+frame-to-frame map, not from the certainty rule, which such a view fails as a whole; the design's affine map
+then misplaces a marker in space by most of a separation, but its previous point moved by its neighbours' mean
+motion does not. A pair that lies that close to where the marker's motion puts it (:data:`MOTION_GATE`), passes
+the same one-reading tests and is held by identified neighbours in the receiving view is taken on that evidence.
 """
 
 from __future__ import annotations
@@ -47,15 +53,28 @@ MAX_PAIRS = 16384
 #: the baseline the next marker of a row meets the same ray 4-6 mm deeper or shallower (1.8-2.5 mm
 #: patterns); the skin between two neighbours is smooth.
 XYZ_GATE = 0.5
+#: In a sequence, a marker the previous frame placed in space is predicted by its own previous point moved by the
+#: mean motion of its design neighbours (placed in both frames), and its pair must lie within this many
+#: separations of that: on the twin's narrow-sine presses from rest (1 mm a frame, crests crowding the pins) that
+#: prediction is within 0.12-0.21 separations of the marker at every frame, where the design's affine map errs by
+#: up to 0.85 at 5 mm. Such a pair is taken without the receiving view's certainty rule (which a crowded view
+#: fails as a whole: its ids come from the frame-to-frame map), so long as the receiving view identifies
+#: :data:`~pipeline.vision.dtrc.proposals.HELD_BY` of its design neighbours: the pair's rays meet within the stereo
+#: check's gap, its point lies where the marker's own motion puts it, and no other free blob or wanted marker
+#: passes: along the rays the next marker lies 4-6 mm off, and a blob that passes lies within ~0.1 separation
+#: of where the marker itself projects.
+MOTION_GATE = 0.3
 
 Locate = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesign, locate: Locate) -> tuple:
+def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesign, locate: Locate,
+                 previous=None) -> tuple:
     """The two views' codings ``((RingCoding, from_rest), (RingCoding, from_rest))`` (left, right), each
     completed from the other (see the module notes). ``locate(left_px, right_px, ids)`` -> (ok (n,) bool,
     xyz (n, 3) mm): the stereo check's test that a left and a right pixel are one marker of that id, and
-    the point they give."""
+    the point they give. ``previous``: the previous frame's markers in the same space (``.ids``, ``.xyz_mm``,
+    e.g. the stereo check's cloud), which predict this frame's by their motion (:data:`MOTION_GATE`)."""
     (lc, lrest), (rc, rrest) = codings
     if lc.ids.size == 0 or rc.ids.size == 0:
         return codings
@@ -67,8 +86,11 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
     ok, xyz = locate(blobs[0].xy_px[_index(lc.ids)[both]], blobs[1].xy_px[_index(rc.ids)[both]], both)
     space = np.full((len(lat.xy), 3), np.nan)
     space[both[ok]] = xyz[ok]
-    left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, locate)
-    right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, locate)
+    before = np.full_like(space, np.nan)
+    if previous is not None and len(previous.ids):
+        before[previous.ids] = previous.xyz_mm
+    left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, before, locate)
+    right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, before, locate)
     return (left, lrest), (right, rrest)
 
 
@@ -79,13 +101,26 @@ def _index(ids: np.ndarray) -> np.ndarray:
     return where
 
 
-def _predicted(want: np.ndarray, lat, space: np.ndarray) -> np.ndarray:
+def _predicted(want: np.ndarray, lat, space: np.ndarray, before: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
-    than three of them, not on one line, have a 3-D point): a local affine map of the design plane, fitted
-    to its immediate neighbours or, where those are too few, to the neighbours within 2.5 pitches (over
-    which a press bends the skin more: a bent fit misses the marker's point, and no pair is proposed)."""
+    than three of them, not on one line, have a 3-D point), and (len(want),) whether that is by its motion:
+    where the previous frame placed the marker (``before``, NaN where not) and three of its neighbours in
+    both frames, its previous point moved by their mean motion; otherwise a local affine map of the design
+    plane, fitted to its immediate neighbours or, where those are too few, to the neighbours within 2.5
+    pitches (over which a press bends the skin more: a bent fit misses the marker's point, and no pair is
+    proposed)."""
     out = np.full((len(want), 3), np.nan)
+    moved = np.zeros(len(want), bool)
     for k, i in enumerate(want.tolist()):
+        if np.isfinite(before[i, 0]):
+            for table in (lat.nbr, lat.nbr2):
+                nb = table[i][table[i] >= 0]
+                nb = nb[np.isfinite(space[nb, 0]) & np.isfinite(before[nb, 0])]
+                if len(nb) >= 3:
+                    out[k], moved[k] = before[i] + (space[nb] - before[nb]).mean(axis=0), True
+                    break
+            if moved[k]:
+                continue
         for table in (lat.nbr, lat.nbr2):     # the immediate neighbours; where too few, those within 2.5 pitches
             nb = table[i][table[i] >= 0]
             nb = nb[np.isfinite(space[nb, 0])]
@@ -96,46 +131,53 @@ def _predicted(want: np.ndarray, lat, space: np.ndarray) -> np.ndarray:
                 continue
             out[k] = np.linalg.lstsq(A, space[nb], rcond=None)[0][2]
             break
-    return out
+    return out, moved
 
 
 def _complete(pts: np.ndarray, coding, want: np.ndarray, other_pts: np.ndarray, other, is_left: bool, lat,
-              space: np.ndarray, locate: Locate):
+              space: np.ndarray, before: np.ndarray, locate: Locate):
     """``coding`` of one view's blobs ``pts`` with the ids ``want`` that only ``other`` (the other view's
-    coding of ``other_pts``) identified, certified in this view."""
+    coding of ``other_pts``) identified, certified in this view (or placed by their motion, :data:`MOTION_GATE`)."""
     ids = coding.ids
     free = np.flatnonzero(ids < 0)
     if len(free) == 0 or len(want) == 0 or len(free) * len(want) > MAX_PAIRS:
         return coding
     proposal, space = ids.copy(), space.copy()
+    by_motion = np.zeros(len(ids), bool)
     index = _index(other.ids)
     while len(free) and len(want):
         # the markers placed in space so far (both views', then this round's pairs) place the next ones
-        pred = _predicted(want, lat, space)
+        pred, moved = _predicted(want, lat, space, before)
         w = np.flatnonzero(np.isfinite(pred[:, 0]))
         if len(w) == 0:
             break
         fi, wi = (a.ravel() for a in np.meshgrid(np.arange(len(free)), w, indexing="ij"))
         a_px, b_px = pts[free[fi]], other_pts[index[want[wi]]]
         ok, xyz = locate(*((a_px, b_px) if is_left else (b_px, a_px)), want[wi])
-        near = np.linalg.norm(np.nan_to_num(xyz - pred[wi], nan=np.inf), axis=1) <= XYZ_GATE * lat.pitch
+        gate = np.where(moved[wi], MOTION_GATE, XYZ_GATE) * lat.pitch
+        near = np.linalg.norm(np.nan_to_num(xyz - pred[wi], nan=np.inf), axis=1) <= gate
         ok = (ok & near).reshape(len(free), len(w))
         one = ok & (ok.sum(axis=1, keepdims=True) == 1) & (ok.sum(axis=0, keepdims=True) == 1)
         bi, wj = np.nonzero(one)
         if len(bi) == 0:
             break
         proposal[free[bi]] = want[w[wj]]
+        by_motion[free[bi]] = moved[w[wj]]
         space[want[w[wj]]] = xyz.reshape(len(free), len(w), 3)[bi, wj]
         free, want = np.delete(free, bi), np.delete(want, w[wj])
     new = np.flatnonzero((proposal >= 0) & (ids < 0))
     if len(new) == 0:
         return coding
     certified = certify(pts, proposal, lat, np.zeros(len(lat.xy), np.int64))
-    took = new[certified[new] == proposal[new]]
-    if lat.translation_lattice and len(took):
+    took = new[(certified[new] == proposal[new]) | by_motion[new]]
+    if len(took):
+        # held by identified neighbours in this view: on a translation lattice every id (a proposal the rule
+        # certified too), elsewhere those placed by their motion alone
+        check = took if lat.translation_lattice else took[by_motion[took] & (certified[took] != proposal[took])]
         taken = np.zeros(len(ids), bool)
         taken[took] = True
-        took = took[held(np.where(taken, proposal, ids), took, lat)]
+        thin = check[~held(np.where(taken, proposal, ids), check, lat)]
+        took = np.setdiff1d(took, thin)
     if len(took) == 0:
         return coding
     out = ids.copy()

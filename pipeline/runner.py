@@ -186,6 +186,7 @@ class Reconstructor:
         self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
         self._stereo_reasons: dict[int, str] = {}
+        self._last_cloud: MarkerCloud | None = None      # the previous frame's checked pairs in space
         if isinstance(reference, MarkerCloud):
             self._reference = reference
         elif isinstance(reference, StereoFrame):
@@ -248,8 +249,8 @@ class Reconstructor:
         return cloud, gap, ok
 
     def _locate(self, left_px: np.ndarray, right_px: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per candidate pair (its pixel in each view, the marker id proposed): can it be one marker
-        (:meth:`_one_marker`), and its 3-D point (mm; NaN where the rays do not reach the gel)."""
+        """Per candidate pair (pixel in each view, marker id proposed): can it be one marker (:meth:`_one_marker`),
+        and its 3-D point (mm; NaN where the rays do not reach the gel)."""
         pairs = MarkerMatches(np.arange(len(ids), dtype=np.int64), np.asarray(left_px, np.float64).reshape(-1, 2),
                               np.asarray(right_px, np.float64).reshape(-1, 2), np.empty(0, np.int64))
         cloud, _, ok = self._one_marker(pairs, rest_z=self._rest_z[ids])
@@ -265,13 +266,15 @@ class Reconstructor:
             return self._tracker.update(left, right)
         if codings is None:
             codings = (self._tracker.code_view(0, left), self._tracker.code_view(1, right))
-        return self._tracker.commit(left, right, across_views((left, right), codings, self.design, self._locate))
+        return self._tracker.commit(left, right, across_views((left, right), codings, self.design, self._locate,
+                                                              self._last_cloud))
 
     def _checked(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud, tuple]:
         """:meth:`_stereo_check`, and the rejected ids not carried into the next frame as certain."""
         out = self._stereo_check(matches)
         if len(out[1]) and hasattr(self._tracker, "forget"):
             self._tracker.forget(out[1])
+        self._last_cloud = out[2]
         return out
 
     def identify(self, left: Blobs, right: Blobs) -> MarkerMatches:
@@ -382,10 +385,9 @@ class Reconstructor:
 
 
 def compile_kernels() -> float:
-    """Run the whole chain on two analytic frames so that numba compiles (or loads from its cache)
-    every kernel of the common path; returns the seconds it took. The first call after an install
-    compiles (~30-35 s on the 2-core reference machine), later ones load the cached machine code in
-    well under a second. ``make setup`` calls it so that the first real frame is not the one paying."""
+    """Run the whole chain on two analytic frames so that numba compiles (or loads from its cache) every kernel
+    of the common path; returns the seconds it took: ~30-35 s after an install on the 2-core reference machine,
+    well under a second from the cache. ``make setup`` calls it so that the first real frame does not pay."""
     from pipeline.design import DEFAULT_DESIGN, load_design
     from pipeline.vision.detection import detect_markers
     from pipeline.vision.dtrc import code_rings

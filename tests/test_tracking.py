@@ -49,7 +49,7 @@ def test_the_rapid_o_keeps_every_marker_through_dtrc_and_not_through_nearest_nei
         assert all(len(k) == design.marker_count and k.all() for k in ok) == every, [int(k.sum()) for k in ok]
     import pipeline.runner as runner
 
-    monkeypatch.setattr(runner, "across_views", lambda blobs, codings, d, locate: codings)
+    monkeypatch.setattr(runner, "across_views", lambda blobs, codings, d, locate, previous=None: codings)
     last = reconstruct(design, calib, frames, tracker="dtrc")[-1]       # each view on its own
     ok = identity_correct(last.corrected.ids, last.corrected.xyz_mm, truths[-1], design.pattern.separation_mm / 2)
     assert ok.all() and len(ok) < design.marker_count
