@@ -1,5 +1,6 @@
 """Ids taken across the two views (``pipeline.cross_view``): a marker one view identifies and the other
-does not is proposed through the stereo geometry and certified in the view that lacked it; never wrong.
+does not is proposed through the stereo geometry and certified in the view that lacked it, or, in a sequence,
+placed where its own motion puts it; never wrong.
 
 The views are analytic presses projected through the nominal calibration and the refracting stack, so
 every blob's marker is known; a view's reading is thinned by withdrawing ids from its own (correct)
