@@ -405,4 +405,3 @@ def test_with_the_last_velocity_jumped_missing_ambiguous_and_misled_markers_are_
     assert np.all((out < 0) | (out == truth))
     assert jumped not in out and gone not in out
     assert np.count_nonzero(out >= 0) >= len(prev) - 12
-
