@@ -101,6 +101,17 @@ def _index(ids: np.ndarray) -> np.ndarray:
     return where
 
 
+def _neighbour_sets(i: int, lat, *placed: np.ndarray):
+    """Marker ``i``'s design neighbours that have a point in every one of ``placed`` ((N, 3), NaN where not), at
+    least three of them: its immediate neighbours, then those within 2.5 pitches."""
+    for table in (lat.nbr, lat.nbr2):
+        nb = table[i][table[i] >= 0]
+        for space in placed:
+            nb = nb[np.isfinite(space[nb, 0])]
+        if len(nb) >= 3:
+            yield nb
+
+
 def _predicted(want: np.ndarray, lat, space: np.ndarray, before: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
     than three of them, not on one line, have a 3-D point), and (len(want),) whether that is by its motion:
@@ -113,19 +124,11 @@ def _predicted(want: np.ndarray, lat, space: np.ndarray, before: np.ndarray) -> 
     moved = np.zeros(len(want), bool)
     for k, i in enumerate(want.tolist()):
         if np.isfinite(before[i, 0]):
-            for table in (lat.nbr, lat.nbr2):
-                nb = table[i][table[i] >= 0]
-                nb = nb[np.isfinite(space[nb, 0]) & np.isfinite(before[nb, 0])]
-                if len(nb) >= 3:
-                    out[k], moved[k] = before[i] + (space[nb] - before[nb]).mean(axis=0), True
-                    break
-            if moved[k]:
+            nb = next(_neighbour_sets(i, lat, space, before), None)
+            if nb is not None:
+                out[k], moved[k] = before[i] + (space[nb] - before[nb]).mean(axis=0), True
                 continue
-        for table in (lat.nbr, lat.nbr2):     # the immediate neighbours; where too few, those within 2.5 pitches
-            nb = table[i][table[i] >= 0]
-            nb = nb[np.isfinite(space[nb, 0])]
-            if len(nb) < 3:
-                continue
+        for nb in _neighbour_sets(i, lat, space):
             A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
             if np.linalg.svd(A[:, :2] / lat.pitch, compute_uv=False)[-1] < 0.5:   # on one line: no plane
                 continue
