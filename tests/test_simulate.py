@@ -53,6 +53,36 @@ def test_press_truth_frames_at_increasing_depth():
     assert np.array_equal(run[0].marker_ids, np.arange(d.marker_count))
 
 
+@pytest.mark.physics
+def test_frames_filmed_in_motion_leave_the_press_unchanged(tmp_path, capsys):
+    """A press filmed every 0.5 mm of its path gives frames at the touch and 0.5-1.5 mm, flagged in motion (never
+    valid, never counted as invalid frames) with timestamps on the robot's path, and a settled frame identical
+    to the unfilmed press's to the last bit: filming only reads the state. With friction (the design's, μ = 1),
+    where the path decides the pose."""
+    d = load_design("hexagon127")
+    ind = make_indenter("gaussian", sigma2_mm2=50)
+    plain = press_truth(d, ind, 2.0, mesh=MeshSpec(fine_mm=2.5))
+    filmed = press_truth(d, ind, 2.0, mesh=MeshSpec(fine_mm=2.5), film_every_mm=0.5)
+    assert [t.in_motion for t in filmed] == [True] * 5 + [False]
+    assert [float(-t.robot_pose[2]) for t in filmed[:5]] == pytest.approx([-0.5, 0.0, 0.5, 1.0, 1.5], abs=0.061)
+    assert filmed.meta["timestamps_s"][:5] == pytest.approx([0.5, 1.0, 1.5, 2.0, 2.5], abs=0.061)
+    assert filmed.meta["filmed_frames"] == [0, 1, 2, 3, 4]
+    assert [i - 5 for i in filmed.meta["invalid_frames"]] == plain.meta["invalid_frames"]   # the settled frame's alone
+    assert all(not t.physics_valid and t.validity["reasons"][0].startswith("filmed in motion") for t in filmed[:5])
+    np.testing.assert_array_equal(filmed[-1].marker_xyz_mm, plain[-1].marker_xyz_mm)
+    np.testing.assert_array_equal(filmed[-1].skin_vertices_mm, plain[-1].skin_vertices_mm)
+    assert filmed[-1].validity == plain[-1].validity
+    assert not filmed[-1].in_motion and filmed[-1].validity["settled"]
+    # the film follows the skin down: the centre marker deeper frame by frame once touched
+    c = int(np.argmin(np.hypot(*d.rest_markers_mm()[:, :2].T)))
+    z = [t.marker_xyz_mm[c, 2] for t in filmed]
+    assert z[0] == pytest.approx(-d.marker_depth_mm) and all(b < a for a, b in zip(z[1:], z[2:]))
+    with pytest.raises(PhysicsError, match="film_every_mm"):
+        press_truth(d, ind, 2.0, film_every_mm=-1.0)
+    assert main(["simulate", "--motion", "tracking-G", "--film-every", "1", "--out", str(tmp_path)]) == 2
+    assert "--film-every 1: frames in motion are filmed on a press" in capsys.readouterr().err
+
+
 def test_depth_limits():
     d = load_design("hexagon127")
     for bad in (-1.0, max_depth_mm(d) + 0.1, float("nan")):

@@ -20,7 +20,7 @@ def test_an_omega_without_cells_scores_nan_and_the_others_their_own():
     d = load_design("hexagon61_sep354")
     rows = [_row(d, 0, 0.044), _row(d, 2, 2.59), _row(d, 2, float("nan"))]   # ω index 4: every press failed to render
     out = Result(designs=[d], setups=[])
-    _score_against_cad(out, rows, [r for r in rows if r["physics_valid"]], _Grid([0, 2, 4], [0.0], 1, [d], {}))
+    _score_against_cad(out, rows, [r for r in rows if r["physics_valid"]], _Grid([0, 2, 4], [0.0], 1, 0.0, [d], {}))
     m = {k: v for k, (v, _) in out.metrics.items()}
     assert m["skin_penetration_max_mm"] == pytest.approx(2.59)
     assert m["skin_penetration_max_mm_w1"] == pytest.approx(0.044)

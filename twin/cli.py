@@ -26,6 +26,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "indenter also takes friction=MU, the skin's Coulomb coefficient on the part's material")
     p.add_argument("--depth", type=float, default=5.0, help="press depth, mm (0 = touching the skin)")
     p.add_argument("--steps", type=int, default=1, help="frames captured during the press (depth·k/steps)")
+    p.add_argument("--film-every", type=float, default=0.0, metavar="MM",
+                   help="also write frames filmed in motion every MM of the press's path (from 1 mm clear of the skin; "
+                        "the first at the touch): the skin as a camera sees it while the indenter moves on, flagged "
+                        "in_motion in its truth, never valid, for tracking; the settled frames are unchanged")
     p.add_argument("--motion", default="press", choices=MOTIONS)
     p.add_argument("--yaw-deg", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
@@ -66,6 +70,9 @@ def report_validity(run) -> list[int]:
     for i, v in enumerate(run.meta.get("validity", [])):
         if v is None:
             continue
+        if v.get("in_motion"):
+            print(f"frame {i:4d}: filmed in motion, penetration max {v['penetration_max_mm']:.3f} mm — not scored")
+            continue
         state = "ok" if v["valid"] else "INVALID: " + "; ".join(v["reasons"])
         print(f"frame {i:4d}: penetration max {v['penetration_max_mm']:.3f} mm (p99 {v['penetration_p99_mm']:.3f}), "
               f"force {v['contact_force_n']:.3f} N, settled {'yes' if v['settled'] else 'no'} — {state}")
@@ -104,6 +111,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                                               "seed": args.seed, "seconds": time.perf_counter() - t0})
         print(f"wrote {len(frames)} chessboard pairs to {out}")
         return 0
+    if args.film_every and args.motion != "press":
+        from twin.physics import PhysicsError
+
+        raise PhysicsError(f"--film-every {args.film_every:g}: frames in motion are filmed on a press (--motion press), "
+                           f"not on {args.motion!r}")
     indenter = make_indenter(args.indenter, **parse_params(args.indenter, args.param))
     t0 = time.perf_counter()
     from twin.physics import NAMED_MESHES, MeshSpec
@@ -111,12 +123,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     mesh = MeshSpec(face_contact=bool(args.face_contact)) if args.mesh == "default" else NAMED_MESHES[args.mesh]
     if args.motion == "press":
         run = simulate.press(design, indenter, args.depth, n_frames=args.steps, yaw_deg=args.yaw_deg, rng=rng,
-                             progress=True, mesh=mesh, friction=args.friction)
+                             progress=True, mesh=mesh, friction=args.friction, film_every_mm=args.film_every)
     else:
         run = simulate.run_motion(design, indenter, args.motion, yaw_deg=args.yaw_deg, rng=rng, progress=True,
                                   mesh=mesh, friction=args.friction)
     simulate.write_run(out, design, indenter, run, extra_meta={
-        "depth_mm": args.depth, "steps": args.steps, "seed": args.seed, "yaw_deg": args.yaw_deg, "mesh_choice": args.mesh,
+        "depth_mm": args.depth, "steps": args.steps, "film_every_mm": args.film_every, "seed": args.seed,
+        "yaw_deg": args.yaw_deg, "mesh_choice": args.mesh,
         "total_s": time.perf_counter() - t0})
     print(f"wrote {len(run)} frame(s) + truth to {out}")
     bad = report_validity(run)

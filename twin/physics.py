@@ -242,7 +242,7 @@ class SkinSim(SkinReadout):
     def move_to(self, x_mm: float, y_mm: float, depth_mm: float, yaw_deg: float, *,
                 max_increment_mm: float = MAX_INCREMENT_MM, max_increment_deg: float = 1.0,
                 contact_increment_mm: float = CONTACT_INCREMENT_MM,
-                penetration_limit_mm: float = PENETRATION_LIMIT_MM) -> int:
+                penetration_limit_mm: float = PENETRATION_LIMIT_MM, on_step=None) -> int:
         """Move the indenter in straight-line increments, one physics step each; returns steps.
 
         Increments are ``max_increment_mm`` while nothing touches and ``contact_increment_mm``
@@ -250,8 +250,7 @@ class SkinSim(SkinReadout):
         than ``penetration_limit_mm`` inside the indenter the robot holds still (physics steps on) as
         long as the lag shrinks by ``HOLD_PROGRESS_MM`` a step, at most ``MAX_HOLD_STEPS`` in a row: the
         lag stays bounded whatever the shape and stiffness, and a vertex caught for good (a flank
-        steeper than the mesh resolves) does not stall the motion.
-        """
+        steeper than the mesh resolves) does not stall the motion. ``on_step(s)``: after each step (s: part made)."""
         a, b = np.array(self.pose), np.array([x_mm, y_mm, depth_mm, yaw_deg], float)
         dist, ang = float(np.linalg.norm(b[:3] - a[:3])), abs(b[3] - a[3])
         s, n, held, last = 0.0, 0, 0, float("inf")
@@ -269,6 +268,8 @@ class SkinSim(SkinReadout):
                 self.set_pose(*(a + (b - a) * s), teleport=False)
             self.step()
             n += 1
+            if on_step is not None:
+                on_step(s)
         return n
 
     def settle(self, *, tol_mm: float = SETTLE_TOL_MM, consecutive: int = SETTLE_CONSECUTIVE,
@@ -341,8 +342,7 @@ class SkinSim(SkinReadout):
         """Deepest free outer-surface vertex inside the indenter, measured vertically (mm, >= 0).
 
         Unlike :meth:`penetration_mm` (MuJoCo's contact distances) this also sees a vertex that has
-        slipped through the height field's prism walls and no longer registers a contact.
-        """
+        slipped through the height field's prism walls and no longer registers a contact."""
         X = self._nodes_from_qpos()[self._is_free_top]
         zi = self.indenter_z_at(X[:, :2])
         pen = X[:, 2] - zi

@@ -78,26 +78,26 @@ class SkinReadout:
         qz = self.data.qfrc_constraint[:3 * len(self._free)][2::3]
         return float(np.sum(qz))
 
-    def validity(self, *, settled: bool) -> FrameValidity:
+    def validity(self, *, settled: bool, in_motion: bool = False) -> FrameValidity:
         """Physical validity of the current state (:mod:`twin.validity`): the outer skin's penetration
         into the indenter's true surface at vertices, face centroids, edge midpoints and the indenter's
         own 0.1 mm samples over the deformable skin (the clamped rim is the rigid mount: how far the
         indenter reaches below it is recorded as ``rim_overlap_mm``); how far the deepest pin's tip lies
         beyond the gel, into the acrylic window (``pin_overrun_mm``); the contact force; ``settled``;
-        MuJoCo's warning counters so far."""
+        MuJoCo's warning counters so far; ``in_motion``: filmed while the indenter moves (never valid)."""
         top = self.skin_vertices_mm()
         free = ~self.mesh.pinned[self.mesh.top]
         pen = skin_penetration(top, self.mesh.top_faces, self.indenter_z_at, free=free)
         overrun = max(0.0, float(self.design.gel_acrylic_z_mm - self.markers()[0][:, 2].min()))
         return frame_validity(pen, contact_force_n=self.contact_force_n(), settled=settled,
                               mujoco_warnings=self.warnings(), rim_overlap=rim_overlap_mm(top, ~free, self.indenter_z_at),
-                              pin_overrun=overrun)
+                              pin_overrun=overrun, in_motion=in_motion)
 
-    def truth(self, *, settled: bool | None = None) -> Truth:
+    def truth(self, *, settled: bool | None = None, in_motion: bool = False) -> Truth:
         """Truth of the current state (sensor frame, mm); with ``settled`` given, its physics validity
-        (:meth:`validity`) is recorded in it."""
+        (:meth:`validity`, ``in_motion`` passed on) is recorded in it."""
         xyz, axis = self.markers()
         x, y, depth, yaw = self.pose
-        val = None if settled is None else self.validity(settled=settled).to_dict()
+        val = None if settled is None else self.validity(settled=settled, in_motion=in_motion).to_dict()
         return Truth(np.arange(len(xyz)), xyz, axis, self.skin_vertices_mm(), self.mesh.top_faces,
                      self.indenter_heightmap(), np.array([x, y, -depth, yaw]), val)

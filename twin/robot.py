@@ -15,7 +15,16 @@ solve is rejected (a vertex would end inside the indenter: steep sines, sharp ti
 friction; ``SettleStats.direct`` says which.
 
 Motions (paper Sec. IV-B and IV-D):
-* ``press``: from 1 mm clear of the skin down to ``depth`` at 1 mm/s, ``n_frames`` evenly spaced.
+* ``press``: from 1 mm clear of the skin down to ``depth`` at 1 mm/s, ``n_frames`` evenly spaced; with
+  ``film_every_mm`` also frames filmed in motion on the way (below).
+
+Frames filmed in motion: a camera filming a press sees the skin while the indenter moves, not only at
+the poses where the robot stops. A waypoint's ``film_every_mm`` captures the state every that many mm
+of the robot's path into it, after the physics step that reaches the mark, without stopping or
+settling: the path, and so every settled frame, is exactly that of the same motion unfilmed (the
+capture only reads the state). Such a frame's truth is flagged ``in_motion`` and is never valid (the
+skin lags the indenter by up to the lag limit); it feeds identification across frames and is never
+scored against the indenter.
 * ``tracking-G``: 1 mm vertical steps from 1 mm depth (1, 2, 3, 4, 5 mm).
 * ``tracking-e``: at 3 mm depth, 1 mm lateral steps in +x (0..4 mm).
 * ``tracking-o``: from touch, a rapid 2 mm down + 2 mm sideways move in 4 frames.
@@ -31,7 +40,7 @@ import numpy as np
 from twin.physics import PhysicsError, SkinSim, max_depth_mm
 from twin.solve import SettleStats
 
-__all__ = ["Waypoint", "Motion", "press_motion", "tracking_motion", "press_repetitions", "execute",
+__all__ = ["Waypoint", "Motion", "press_motion", "tracking_motion", "press_repetitions", "execute", "filmed_count",
            "MOTIONS", "ROBOT_SPEED_MM_S", "RAPID_SPEED_MM_S"]
 
 ROBOT_SPEED_MM_S = 1.0     # paper: pressed at 1 mm/s
@@ -48,6 +57,7 @@ class Waypoint:
     yaw_deg: float = 0.0
     capture: bool = True
     speed_mm_s: float = ROBOT_SPEED_MM_S
+    film_every_mm: float = 0.0   # > 0: frames filmed in motion every this many mm of the path into this waypoint
 
     @property
     def pose(self) -> tuple[float, float, float, float]:
@@ -61,12 +71,17 @@ class Motion:
 
 
 def press_motion(depth_mm: float, *, n_frames: int = 1, yaw_deg: float = 0.0, x_mm: float = 0.0,
-                 y_mm: float = 0.0) -> Motion:
-    """Approach from ``APPROACH_MM`` clear of the skin to ``depth_mm``; frames at depth·k/n, k = 1..n."""
+                 y_mm: float = 0.0, film_every_mm: float = 0.0) -> Motion:
+    """Approach from ``APPROACH_MM`` clear of the skin to ``depth_mm``; frames at depth·k/n, k = 1..n, and with
+    ``film_every_mm`` > 0 frames filmed in motion every that many mm of the path between them (module notes:
+    from rest, the first at the touch)."""
     if n_frames < 1:
         raise PhysicsError(f"n_frames must be >= 1, got {n_frames}")
+    if not (np.isfinite(film_every_mm) and film_every_mm >= 0):
+        raise PhysicsError(f"film_every_mm must be >= 0 (0: no frames in motion), got {film_every_mm!r}")
     wps = [Waypoint(x_mm, y_mm, -APPROACH_MM, yaw_deg, capture=False)]
-    wps += [Waypoint(x_mm, y_mm, depth_mm * k / n_frames, yaw_deg) for k in range(1, n_frames + 1)]
+    wps += [Waypoint(x_mm, y_mm, depth_mm * k / n_frames, yaw_deg, film_every_mm=film_every_mm)
+            for k in range(1, n_frames + 1)]
     return Motion("press", tuple(wps))
 
 
@@ -101,7 +116,8 @@ def execute(sim: SkinSim, motion: Motion, *, progress=None, direct: bool = True)
     is the robot's path length so far divided by each segment's documented speed. With ``direct``
     (default) each captured pose is first solved directly (:meth:`SkinSim.solve_at`: valid for
     frictionless contact, checked, and undone when a vertex ends inside the indenter); where that is
-    rejected, and for waypoints that are not captured, the path is followed (:meth:`SkinSim.move_to`).
+    rejected, for waypoints that are not captured and for those filmed on the way (``film_every_mm``), the
+    path is followed (:meth:`SkinSim.move_to`); a filmed frame's settle stats are zero steps, not converged.
     """
     deepest = max(w.depth_mm for w in motion.waypoints)
     if deepest > max_depth_mm(sim.design) + 1e-9:
@@ -141,14 +157,15 @@ def _execute(sim: SkinSim, motion: Motion, progress, direct: bool, *, stop_if_un
     for k, wp in enumerate(motion.waypoints):
         stats = None
         if k > 0:
-            if direct and wp.capture:
+            cur = np.array(wp.pose)
+            dist = float(np.linalg.norm(cur[:3] - prev[:3]))
+            if direct and wp.capture and wp.film_every_mm <= 0:
                 stats = sim.solve_at(*wp.pose)
             if stats is None:
-                sim.move_to(*wp.pose)
+                sim.move_to(*wp.pose, on_step=_filming(sim, wp, dist, t, out, progress))
             if stop_if_unstable is not None and sim.unstable(stop_if_unstable):
                 return None
-            cur = np.array(wp.pose)
-            t += float(np.linalg.norm(cur[:3] - prev[:3])) / wp.speed_mm_s
+            t += dist / wp.speed_mm_s
             prev = cur
         if wp.capture:
             if stats is None:
@@ -159,3 +176,33 @@ def _execute(sim: SkinSim, motion: Motion, progress, direct: bool, *, stop_if_un
             if progress is not None:
                 progress.update()
     return out
+
+
+def _filming(sim: SkinSim, wp: Waypoint, dist_mm: float, t0_s: float, out: list, progress):
+    """The ``on_step`` of :meth:`SkinSim.move_to` for a segment of ``dist_mm`` into ``wp`` started at ``t0_s``:
+    a frame filmed in motion (truth flagged ``in_motion``) after the step that passes each mark of
+    ``wp.film_every_mm`` along the path, short of the segment's end; None when the segment is not filmed."""
+    if wp.film_every_mm <= 0 or dist_mm <= 0:
+        return None
+    marks = list(np.arange(wp.film_every_mm, dist_mm - 1e-9, wp.film_every_mm))
+
+    def film(s: float) -> None:
+        while marks and s * dist_mm >= marks[0] - 1e-9:
+            marks.pop(0)
+            out.append((t0_s + s * dist_mm / wp.speed_mm_s, SettleStats(0, False, 0.0, 0.0),
+                        sim.truth(settled=False, in_motion=True)))
+            if progress is not None:
+                progress.update()
+    return film
+
+
+def filmed_count(motion: Motion) -> int:
+    """How many frames a motion films in motion (:func:`press_motion` ``film_every_mm``)."""
+    n, prev = 0, np.array(motion.waypoints[0].pose[:3]) if motion.waypoints else None
+    for wp in motion.waypoints[1:]:
+        cur = np.array(wp.pose[:3])
+        dist = float(np.linalg.norm(cur - prev))
+        if wp.film_every_mm > 0 and dist > 0:
+            n += len(np.arange(wp.film_every_mm, dist - 1e-9, wp.film_every_mm))
+        prev = cur
+    return n

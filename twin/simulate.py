@@ -47,7 +47,7 @@ def _run(design: SensorDesign, indenter: Indenter, motion: robot.Motion, mesh: M
     t0 = time.perf_counter()
     sim = SkinSim(design, indenter, mesh=mesh, friction=friction)
     t_build = time.perf_counter() - t0
-    n_cap = sum(w.capture for w in motion.waypoints)
+    n_cap = sum(w.capture for w in motion.waypoints) + robot.filmed_count(motion)
     with tqdm(total=n_cap, desc=f"twin {motion.name}", disable=not progress) as bar:
         res = robot.execute(sim, motion, progress=bar)
     out = SimRun(t for _, _, t in res)
@@ -66,18 +66,21 @@ def _run(design: SensorDesign, indenter: Indenter, motion: robot.Motion, mesh: M
                    + (f"; face contact switched off: {sim.face_contact_fallback}" if sim.face_contact_fallback else ""),
         "surface_spheres": int(sim._n_surface_spheres),
         "validity": [t.validity for _, _, t in res],
-        "invalid_frames": [i for i, (_, _, t) in enumerate(res) if t.validity is not None and not t.validity["valid"]],
+        "invalid_frames": [i for i, (_, _, t) in enumerate(res)
+                           if t.validity is not None and not t.validity["valid"] and not t.in_motion],
+        "filmed_frames": [i for i, (_, _, t) in enumerate(res) if t.in_motion],
     }
     return out
 
 
 def press_truth(design: SensorDesign, indenter: Indenter, depth_mm: float, *, n_frames: int = 1,
                 yaw_deg: float = 0.0, mesh: MeshSpec = MeshSpec(), progress: bool = False,
-                friction: float | None = None) -> SimRun:
-    """Physics only: press ``depth_mm`` (skin contact at 0), ``n_frames`` truths at depth·k/n."""
+                friction: float | None = None, film_every_mm: float = 0.0) -> SimRun:
+    """Physics only: press ``depth_mm`` (skin contact at 0), ``n_frames`` truths at depth·k/n, with
+    ``film_every_mm`` > 0 also truths filmed in motion on the way (:func:`twin.robot.press_motion`)."""
     _check_depth(design, depth_mm)
-    return _run(design, indenter, robot.press_motion(depth_mm, n_frames=n_frames, yaw_deg=yaw_deg), mesh, progress,
-                friction)
+    return _run(design, indenter, robot.press_motion(depth_mm, n_frames=n_frames, yaw_deg=yaw_deg,
+                                                     film_every_mm=film_every_mm), mesh, progress, friction)
 
 
 def motion_truth(design: SensorDesign, indenter: Indenter, motion: str, *, yaw_deg: float = 0.0,
@@ -123,10 +126,12 @@ def _with_frames(design, truths: SimRun, rng) -> SimRun:
 
 def press(design: SensorDesign, indenter: Indenter, depth_mm: float, *, n_frames: int = 1, yaw_deg: float = 0.0,
           rng: np.random.Generator, mesh: MeshSpec = MeshSpec(), progress: bool = False,
-          friction: float | None = None) -> SimRun:
-    """Press and render: ``[(StereoFrame, Truth), ...]`` for frames at depth·k/n_frames, k = 1..n."""
+          friction: float | None = None, film_every_mm: float = 0.0) -> SimRun:
+    """Press and render: ``[(StereoFrame, Truth), ...]`` for frames at depth·k/n_frames, k = 1..n (and those
+    filmed in motion every ``film_every_mm`` of the path, in order)."""
     return _with_frames(design, press_truth(design, indenter, depth_mm, n_frames=n_frames, yaw_deg=yaw_deg,
-                                            mesh=mesh, progress=progress, friction=friction), rng)
+                                            mesh=mesh, progress=progress, friction=friction,
+                                            film_every_mm=film_every_mm), rng)
 
 
 def run_motion(design: SensorDesign, indenter: Indenter, motion: str, *, rng: np.random.Generator,

@@ -48,6 +48,11 @@ class Truth:
         """The frame passed every physics check (None: not checked)."""
         return None if self.validity is None else bool(self.validity["valid"])
 
+    @property
+    def in_motion(self) -> bool:
+        """Filmed while the indenter moved (:class:`twin.validity.FrameValidity`): a tracking input, never scored."""
+        return bool(self.validity is not None and self.validity.get("in_motion", False))
+
     def __post_init__(self) -> None:
         f = lambda name, **kw: object.__setattr__(self, name, checked_array(f"Truth.{name}", getattr(self, name), **kw))
         f("marker_ids", dtype=np.int64, shape=(-1,))

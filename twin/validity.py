@@ -144,6 +144,10 @@ class FrameValidity:
     ``valid`` is False when the skin penetrates the indenter beyond ``PENETRATION_MAX_MM``, a pin's tip
     lies beyond the gel (``pin_overrun_mm`` > 0: into the acrylic window, which a real pin cannot reach),
     the settle did not converge, or MuJoCo raised any warning; ``reasons`` names each failed check.
+    A frame filmed in motion (``in_motion``, :func:`twin.robot.press_motion` ``film_every_mm``) is the
+    state the camera sees while the indenter moves on: the skin lags the indenter by up to the robot's
+    lag limit and nothing has settled, so it is never valid; it is an input to identification across
+    frames, never scored against the indenter.
     """
 
     penetration_max_mm: float
@@ -158,6 +162,7 @@ class FrameValidity:
     pin_overrun_mm: float = 0.0
     valid: bool = True
     reasons: tuple = ()
+    in_motion: bool = False   # filmed while the indenter moved: not at equilibrium, so never valid (a tracking input)
 
     def to_dict(self) -> dict:
         """Plain JSON types; an undefined statistic (NaN, e.g. no gap when nothing touches) becomes None."""
@@ -175,19 +180,20 @@ class FrameValidity:
 
 def frame_validity(pen: Penetration, *, contact_force_n: float, settled: bool, mujoco_warnings: dict,
                    rim_overlap: float = 0.0, penetration_max_mm: float = PENETRATION_MAX_MM,
-                   pin_overrun: float = 0.0) -> FrameValidity:
-    """Combine the geometric checks with the solver's health into one verdict."""
-    reasons = []
+                   pin_overrun: float = 0.0, in_motion: bool = False) -> FrameValidity:
+    """Combine the geometric checks with the solver's health into one verdict (``in_motion``: a frame filmed
+    while the indenter moves, see :class:`FrameValidity`)."""
+    reasons = ["filmed in motion, not at equilibrium: an input to tracking, never scored"] if in_motion else []
     if not np.isfinite(pen.max_mm):
         reasons.append("skin mesh degenerate (non-finite vertices or faces folded over each other)")
     elif pen.max_mm > penetration_max_mm:
         reasons.append(f"skin {pen.max_mm:.3f} mm inside the indenter (bound {penetration_max_mm:g} mm)")
     if pin_overrun > 0:
         reasons.append(f"a pin's tip {pin_overrun:.3f} mm beyond the gel, into the acrylic window")
-    if not settled:
+    if not settled and not in_motion:
         reasons.append("press did not settle to equilibrium")
     if mujoco_warnings:
         reasons.append("MuJoCo warnings: " + ", ".join(f"{k} x{v}" for k, v in sorted(mujoco_warnings.items())))
     return FrameValidity(pen.max_mm, pen.p99_mm, pen.vertex_max_mm, pen.gap_touching_max_mm, pen.gap_touching_rms_mm,
                          float(contact_force_n), bool(settled), dict(mujoco_warnings), float(rim_overlap),
-                         float(pin_overrun), not reasons, tuple(reasons))
+                         float(pin_overrun), not reasons, tuple(reasons), bool(in_motion))

@@ -41,6 +41,14 @@ VALLEY_REACH_MM = AMPLITUDE_MM
 #: carried ids once pins crowd into the crests; 0.25 mm steps change nothing. Only hexagon127 at 2pi/15,
 #: yaw 120 keeps 125 of 127 to 5 mm (a single frame: 0). So the default stays a single frame.
 PRESS_FRAMES = 1
+#: Frames filmed in motion on the way down (:func:`twin.robot.press_motion`): every FILM_EVERY_MM of the
+#: press's path from 1 mm clear of the skin (at the touch, 1, 2, 3 and 4 mm), read in order before the settled
+#: frame as a camera filming the press would give them; they carry the ids from rest to the crowded pose and
+#: are never scored against CAD. The settled frame is exactly the unfilmed press's (filming only reads the
+#: state), so the physics and its verdict are unchanged. Measured on the crowded cells at yaw 0 (2026-11-29,
+#: the design's friction): hexagon217_sep180 at 2π/15 / π/5 / 2π/5 217 / 211 / 217 of 217 at 5 mm, hexagon61 at
+#: π/5 61 of 61, none wrong; the single settled frame alone identifies none of them. 0: the settled frames only.
+FILM_EVERY_MM = 1.0
 #: The plate: the sine relief out to RELIEF_RADIUS_MM from the sensor axis, then rounded off downward along a parabola
 #: of apex radius ROLL_OFF_RADIUS_MM (twin.indenters, ``relief_radius_mm``): 5.8 mm lower at 18.3 mm, where the
 #: clamped rim's staircase comes nearest, so the crests pressed 5 mm clear the rigid mount. The scored marker regions
@@ -103,7 +111,7 @@ def run(ctx: Context) -> Result:
     cells = _press_grid(ctx, out, grid)
     rows = [c[0] for c in cells]
     out.tables["cells"] = rows
-    _report_identification(out, rows, grid.n_press)
+    _report_identification(out, rows, grid.n_press, grid.film_every_mm)
     valid_rows = _physically_valid(out, rows)
     _score_against_cad(out, rows, valid_rows, grid)
     _findings(out, rows, valid_rows, grid.omega_idx)
@@ -118,6 +126,7 @@ class _Grid(NamedTuple):
     omega_idx: list
     yaws: list
     n_press: int
+    film_every_mm: float
     designs: list
     setups: dict      # design name -> its SensorSetup (estimated calibration: once per design)
 
@@ -128,29 +137,33 @@ def _grid(ctx: Context) -> _Grid:
     seps = [float(s) for s in ctx.param("separations", tuple(SEP_DESIGNS), quick=(3.54, 1.80))]
     yaws = [float(y) for y in ctx.param("yaws", YAWS_DEG, quick=(0.0,))]
     n_press = int(ctx.param("press_frames", PRESS_FRAMES))
+    film = float(ctx.param("film_every_mm", FILM_EVERY_MM))
     designs = ctx.designs([SEP_DESIGNS[s] for s in seps])
     setups = {d.name: ctx.sensor_setup(d) for d in designs}
-    return _Grid(omega_idx, yaws, n_press, designs, setups)
+    return _Grid(omega_idx, yaws, n_press, film, designs, setups)
 
 
 def _press_grid(ctx: Context, out: Result, grid: _Grid) -> list:
     """Press, reconstruct and score every cell (:func:`press_cell`) through the executor; [(row, surface grid)]."""
     mu = friction_knob(ctx, out, default=SINE_FRICTION)
-    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", grid.setups[design.name], grid.n_press, mu)
-            for design in grid.designs for k in grid.omega_idx for yaw in grid.yaws]
+    jobs = [(design, k, yaw, ctx.seed, f"sine/{design.name}/{k}/{yaw:g}", grid.setups[design.name], grid.n_press, mu,
+             grid.film_every_mm) for design in grid.designs for k in grid.omega_idx for yaw in grid.yaws]
     return run_press_cells(ctx, out, press_cell, jobs, desc="sine", params=lambda j: (
         {"design": j[0].name, "omega_index": j[1], "yaw_deg": j[2]},
         f"{j[0].name} ω={OMEGA_LABELS[j[1]]} yaw {j[2]:g}"))
 
 
-def _report_identification(out: Result, rows: list[dict], n_press: int) -> None:
+def _report_identification(out: Result, rows: list[dict], n_press: int, film_every_mm: float) -> None:
     """Matched fraction and wrong ids over every cell (identification is scored on all frames the twin rendered)."""
     out.metric("matched_fraction_min", float(min(r["matched_fraction"] for r in rows)), "1")
     out.metric("wrong_ids", int(sum(r["wrong_ids_sequence"] for r in rows)), "1")
+    filmed = (f", with frames filmed in motion every {film_every_mm:g} mm of the path from 1 mm clear of the skin "
+              "(the skin as the camera sees it while the indenter moves on: never settled, never scored against CAD; "
+              "filmed_frames, filmed_penetration_max_mm in the cells table)" if film_every_mm > 0 else "")
     out.notes.append(
-        f"Identification: each cell is pressed from rest in {n_press} frame(s) (depth·k/{n_press}, k = 1..{n_press}) and "
-        "the frames are reconstructed in order by one Reconstructor (ids carried from frame to frame); "
-        "matched_fraction is the last frame's. wrong_ids counts, over every frame of every cell, reported ids whose "
+        f"Identification: each cell is pressed from rest to {n_press} settled frame(s) (depth·k/{n_press}, "
+        f"k = 1..{n_press}){filmed}, and the frames are reconstructed in order by one Reconstructor (ids carried "
+        "from frame to frame); matched_fraction is the last frame's. wrong_ids counts, over every frame of every cell, reported ids whose "
         "3-D position's nearest twin marker within half a separation carries another id (or none is that near). "
         "identified_to_mm (cells table): the deepest frame up to which every frame identified "
         f"≥ {IDENTIFIED_FRACTION:.0%} of the markers. Identification is scored on every cell, physically valid or "
@@ -304,11 +317,12 @@ def sine_mesh():
 
 
 def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n_frames: int = PRESS_FRAMES,
-               friction: float | None = SINE_FRICTION) -> tuple:
+               friction: float | None = SINE_FRICTION, film_every_mm: float = FILM_EVERY_MM) -> tuple:
     """One cell of the grid: press the sine ω = OMEGAS[k] rotated by ``yaw`` into ``design`` from rest in
-    ``n_frames`` frames, reconstruct them in order with the unchanged pipeline (one Reconstructor) and
-    score the last; returns (cell row, surface grid). Every frame's ids are checked against the twin's
-    markers. The frames' noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
+    ``n_frames`` settled frames, with frames filmed in motion every ``film_every_mm`` of the path
+    (:data:`FILM_EVERY_MM`; 0: none), reconstruct them in order with the unchanged pipeline (one
+    Reconstructor) and score the last; returns (cell row, surface grid). Every frame's ids are checked
+    against the twin's markers; the cell's physical verdict is its settled frames'. The frames' noise comes from the stream ``stream`` under ``seed`` (:func:`benchmarks.registry.stream_rng`).
     ``setup`` (:class:`benchmarks.estimated.SensorSetup`): the twin presses ``setup.twin_design`` and the pipeline is
     given ``setup.design``, ``setup.calib`` and its index; None: the oracle setup of ``design``. ``friction``: the
     Coulomb coefficient of the press (default :data:`SINE_FRICTION`), None for the design's own."""
@@ -318,16 +332,17 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
     built, design, calib = setup.twin_design, setup.design, setup.calib
     w = OMEGAS[k]
     run = press(built, sine_plate(w), DEPTH_MM, n_frames=n_frames, yaw_deg=yaw, rng=rng, mesh=sine_mesh(),
-                friction=friction)
+                friction=friction, film_every_mm=film_every_mm)
     results = reconstruct(design, calib, [f for f, _ in run], **setup.reconstructor_kw())
     sep = design.pattern.separation_mm
     matched = [r.n_matched / design.marker_count for r in results]
     wrong = [int(np.count_nonzero(~identity_correct(r.corrected.ids, r.corrected.xyz_mm, t, sep / 2)))
              for r, (_, t) in zip(results, run)]
-    depths = [DEPTH_MM * (i + 1) / n_frames for i in range(n_frames)]
+    depths = [float(-t.robot_pose[2]) for _, t in run]
     held = 0
-    while held < n_frames and matched[held] >= IDENTIFIED_FRACTION:
+    while held < len(run) and matched[held] >= IDENTIFIED_FRACTION:
         held += 1
+    filmed = [t for _, t in run if t.in_motion]
     truth = run[-1][1]
     fr = results[-1]
     g = surface_grid(fr.skin, truth, radius)
@@ -342,7 +357,9 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
     for r in fr.unmatched_reasons.values():
         reasons[r] = reasons.get(r, 0) + 1
     cell = {"design": design.name, "matched_fraction": fr.n_matched / design.marker_count,
-            "press_frames": n_frames, "wrong_ids": wrong[-1], "wrong_ids_sequence": int(sum(wrong)),
+            "press_frames": n_frames, "filmed_frames": len(filmed), "frame_depths_mm": depths,
+            "filmed_penetration_max_mm": finite_max(t.validity["penetration_max_mm"] for t in filmed),
+            "wrong_ids": wrong[-1], "wrong_ids_sequence": int(sum(wrong)),
             "matched_fraction_frames": matched, "identified_to_mm": depths[held - 1] if held else 0.0,
             "unmatched_reasons": reasons,
             "separation_mm": design.pattern.separation_mm, "omega_index": k,
@@ -351,6 +368,7 @@ def press_cell(design, k: int, yaw: float, seed: int, stream: str, setup=None, n
             "valley_gap_mm": float(np.nanmean(gap[valley])) if np.any(valley) else float("nan"),
             "upper_points": int(upper.sum()), "valley_points": int(valley.sum()),
             "skin_penetration_grid_mm": _penetration(gap, g["r"], radius),
-            # a sequence read through a physically invalid frame is not scored, whichever frame it was
-            **validity_columns(next((t for _, t in run if t.physics_valid is False), truth))}
+            # a sequence read through a physically invalid settled frame is not scored, whichever frame it was;
+            # frames filmed in motion are never valid (not at equilibrium) and never scored
+            **validity_columns(next((t for _, t in run if t.physics_valid is False and not t.in_motion), truth))}
     return cell, g
