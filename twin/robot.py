@@ -17,6 +17,10 @@ friction; ``SettleStats.direct`` says which.
 Motions (paper Sec. IV-B and IV-D):
 * ``press``: from 1 mm clear of the skin down to ``depth`` at 1 mm/s, ``n_frames`` evenly spaced; with
   ``film_every_mm`` also frames filmed in motion on the way (below).
+* ``tracking-G``: 1 mm vertical steps from 1 mm depth (1, 2, 3, 4, 5 mm).
+* ``tracking-e``: at 3 mm depth, 1 mm lateral steps in +x (0..4 mm).
+* ``tracking-o``: from touch, a rapid 2 mm down + 2 mm sideways move in 4 frames.
+* ``press_repetitions``: a press repeated with the indenter yawed by 120° between repetitions.
 
 Frames filmed in motion: a camera filming a press sees the skin while the indenter moves, not only at
 the poses where the robot stops. A waypoint's ``film_every_mm`` captures the state every that many mm
@@ -25,10 +29,6 @@ settling: the path, and so every settled frame, is exactly that of the same moti
 capture only reads the state). Such a frame's truth is flagged ``in_motion`` and is never valid (the
 skin lags the indenter by up to the lag limit); it feeds identification across frames and is never
 scored against the indenter.
-* ``tracking-G``: 1 mm vertical steps from 1 mm depth (1, 2, 3, 4, 5 mm).
-* ``tracking-e``: at 3 mm depth, 1 mm lateral steps in +x (0..4 mm).
-* ``tracking-o``: from touch, a rapid 2 mm down + 2 mm sideways move in 4 frames.
-* ``press_repetitions``: a press repeated with the indenter yawed by 120° between repetitions.
 """
 
 from __future__ import annotations
@@ -182,9 +182,9 @@ def _filming(sim: SkinSim, wp: Waypoint, dist_mm: float, t0_s: float, out: list,
     """The ``on_step`` of :meth:`SkinSim.move_to` for a segment of ``dist_mm`` into ``wp`` started at ``t0_s``:
     a frame filmed in motion (truth flagged ``in_motion``) after the step that passes each mark of
     ``wp.film_every_mm`` along the path, short of the segment's end; None when the segment is not filmed."""
-    if wp.film_every_mm <= 0 or dist_mm <= 0:
+    marks = _marks(wp, dist_mm)
+    if not marks:
         return None
-    marks = list(np.arange(wp.film_every_mm, dist_mm - 1e-9, wp.film_every_mm))
 
     def film(s: float) -> None:
         while marks and s * dist_mm >= marks[0] - 1e-9:
@@ -198,11 +198,12 @@ def _filming(sim: SkinSim, wp: Waypoint, dist_mm: float, t0_s: float, out: list,
 
 def filmed_count(motion: Motion) -> int:
     """How many frames a motion films in motion (:func:`press_motion` ``film_every_mm``)."""
-    n, prev = 0, np.array(motion.waypoints[0].pose[:3]) if motion.waypoints else None
-    for wp in motion.waypoints[1:]:
-        cur = np.array(wp.pose[:3])
-        dist = float(np.linalg.norm(cur - prev))
-        if wp.film_every_mm > 0 and dist > 0:
-            n += len(np.arange(wp.film_every_mm, dist - 1e-9, wp.film_every_mm))
-        prev = cur
-    return n
+    pts = [np.array(wp.pose[:3]) for wp in motion.waypoints]
+    return sum(len(_marks(wp, float(np.linalg.norm(b - a)))) for wp, a, b in zip(motion.waypoints[1:], pts, pts[1:]))
+
+
+def _marks(wp: Waypoint, dist_mm: float) -> list[float]:
+    """Where along a segment of ``dist_mm`` into ``wp`` frames are filmed (mm of path, short of its end)."""
+    if wp.film_every_mm <= 0 or dist_mm <= 0:
+        return []
+    return [float(m) for m in np.arange(wp.film_every_mm, dist_mm - 1e-9, wp.film_every_mm)]
