@@ -1,8 +1,10 @@
 """Two touching pins found as one blob, split back into the two pins.
 
 Pins on a flank seen obliquely are foreshortened to narrow ellipses; two of them touching side by side read as
-one round blob at the pair's scale, centred on the dark line between them. :func:`separate_pairs` finds such
-blobs among the accepted ones and replaces each by its two pins.
+one round blob at the pair's scale, centred on the dark line between them. Pins crowded into a crest overlap in
+the image instead (discs 8-9 px apart with radius ~6 px on hexagon217_sep180 under a 5 mm sine press): the blob
+is a figure of eight with no dark line, its waist only narrower. :func:`separate_pairs` finds both among the
+accepted blobs and replaces each by its two pins.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pipeline.vision.detection.photometry import WINDOW_MARGIN_PX
 from pipeline.vision.detection.rejection import LOCAL_SIZE_NEIGHBOURS
 
 __all__ = ["separate_pairs", "PAIR_MIN_ELONGATION", "PAIR_MIN_SCALE_FRACTION", "PAIR_PEAK_FRACTION", "PAIR_DIP",
-           "PAIR_CENTRE_FRACTION", "PAIR_TAKEN_FRACTION"]
+           "PAIR_CENTRE_FRACTION", "PAIR_TAKEN_FRACTION", "PAIR_WAIST", "PAIR_END_FRACTION"]
 
 
 #: Two pins touching side by side on a flank seen obliquely (each foreshortened to a narrow ellipse)
@@ -40,6 +42,18 @@ PAIR_CENTRE_FRACTION = 0.92
 #: A half whose centroid lies closer than this fraction of the two halves' distance to another blob
 #: is that blob's pin, already found: only the other half replaces the blob (re-centred on its own pin).
 PAIR_TAKEN_FRACTION = 0.5
+#: Two overlapping pins: the light summed across the long axis (the blob's cross-section, within its window) has
+#: a maximum on each side of the centre, both at least ``PAIR_PEAK_FRACTION`` of the larger, at least one typical
+#: marker radius apart, with a waist between them down to ``PAIR_WAIST`` of the smaller. Two flat discs of radius r
+#: whose centres lie d apart have the cross-section of the larger chord, 2 sqrt(r^2 - (t -+ d/2)^2): widest at
+#: either centre, 2 sqrt(r^2 - d^2/4) at the waist (0.60-0.80 of it for d = 1.2-1.6 r; measured 0.62-0.82 on the
+#: twin's crests); one marker, round or foreshortened to an ellipse, has a single widest chord at its centre.
+#: Each pin is placed at the middle of its widest chords, its disc's centre. The chords are taken as the median
+#: of three neighbouring ones (a speck touching a marker's end widened one chord on a real TacTip frame), and
+#: beyond each pin, half a marker radius past the blob's own radius, they narrow again to at most
+#: ``PAIR_END_FRACTION`` of its widest (a marker touching another end-on widens towards it: not a pair).
+PAIR_WAIST = 0.85
+PAIR_END_FRACTION = 0.9
 #: Background of the pair window: this percentile of its pixels (the dark skin around the pair).
 _PAIR_BACKGROUND_PERCENTILE = 10
 #: Profile samples per pixel along the long axis, and the across-axis offsets (px) averaged.
@@ -62,31 +76,31 @@ def _bilinear(patch: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def separate_pairs(grey: np.ndarray, cand: np.ndarray, xy: np.ndarray,
                    params: DetectionParams) -> tuple[np.ndarray, np.ndarray]:
-    """Accepted blobs that are two touching pins seen as one, replaced by the two pins.
+    """Accepted blobs that are two touching or overlapping pins seen as one, replaced by the two pins.
 
     ``cand`` and ``xy`` are the accepted candidates and their centres. A blob examined (see
-    :data:`PAIR_MIN_ELONGATION`) whose light along its long axis shows two peaks with a dip between
-    (:data:`PAIR_DIP`) is split across that axis at its centroid; each half's centroid (light above
-    the background) is a pin, with the neighbours' typical scale and the blob's response, unless another
-    blob already stands there (:data:`PAIR_TAKEN_FRACTION`). Returns the new candidates and centres
-    (split blobs removed, their pins appended); unchanged with fewer than
-    ``LOCAL_SIZE_NEIGHBOURS + 1`` blobs.
+    :data:`PAIR_MIN_ELONGATION`) is two pins when the light along its long axis shows two peaks with a
+    dip between (:data:`PAIR_DIP`; only where its centre is darker than its top, :data:`PAIR_CENTRE_FRACTION`):
+    it is split across that axis at its centroid, each half's centroid (light above the background) a pin;
+    or when its cross-section along that axis has a waist between two widest chords (:data:`PAIR_WAIST`),
+    each pin at its widest chord. A pin gets the neighbours' typical scale and the blob's response, unless
+    another blob already stands there (:data:`PAIR_TAKEN_FRACTION`). Returns the new candidates and centres
+    (split blobs removed, their pins appended); unchanged with fewer than ``LOCAL_SIZE_NEIGHBOURS + 1`` blobs.
     """
     n = len(xy)
     h, w = grey.shape
     which = np.flatnonzero(cand[:, ELONGATION] >= PAIR_MIN_ELONGATION)
     if n < LOCAL_SIZE_NEIGHBOURS + 1 or len(which) == 0:
         return cand, xy
-    # the centre of a pair's blob lies on the dark line between the pins; a marker's on its flat top
+    # the centre of a touching pair's blob lies on the dark line between the pins; a marker's on its flat top
     ix = np.clip(np.rint(xy[which, 0]).astype(np.intp), 0, w - 1)
     iy = np.clip(np.rint(xy[which, 1]).astype(np.intp), 0, h - 1)
     reach = max(1, int(np.ceil(RADIUS_PER_SIGMA * float(cand[which, SIGMA].max()) / 2)))
     off = np.arange(-reach, reach + 1)
     ox, oy = np.meshgrid(off, off)
     top = grey[np.clip(iy[:, None] + oy.ravel(), 0, h - 1), np.clip(ix[:, None] + ox.ravel(), 0, w - 1)].max(axis=1)
-    which = which[grey[iy, ix] < PAIR_CENTRE_FRACTION * top]
-    if len(which) == 0:
-        return cand, xy
+    dark = np.zeros(n, bool)
+    dark[which] = grey[iy, ix] < PAIR_CENTRE_FRACTION * top
     tree = cKDTree(xy)
     _, nb = tree.query(xy[which], k=LOCAL_SIZE_NEIGHBOURS + 1)
     local = np.full(n, np.inf)
@@ -97,55 +111,17 @@ def separate_pairs(grey: np.ndarray, cand: np.ndarray, xy: np.ndarray,
     drop = np.zeros(n, bool)
     new_rows, new_xy = [], []
     for i in which:
-        r = RADIUS_PER_SIGMA * float(cand[i, SIGMA])
-        r_win = params.centroid_radius_factor * r + WINDOW_MARGIN_PX
-        x0, y0 = float(xy[i, 0]), float(xy[i, 1])
-        xa, xb = max(0, int(np.floor(x0 - r_win))), min(w - 1, int(np.ceil(x0 + r_win)))
-        ya, yb = max(0, int(np.floor(y0 - r_win))), min(h - 1, int(np.ceil(y0 + r_win)))
-        if xb - xa < 2 or yb - ya < 2:
+        win = _Window.of(grey, xy[i], RADIUS_PER_SIGMA * float(cand[i, SIGMA]), params)
+        if win is None:
             continue
-        patch = grey[ya:yb + 1, xa:xb + 1].astype(np.float64)
-        gx = np.arange(xa, xb + 1, dtype=np.float64)[None, :]
-        gy = np.arange(ya, yb + 1, dtype=np.float64)[:, None]
-        inside = (gx - x0) ** 2 + (gy - y0) ** 2 <= r_win * r_win
-        v = patch[inside]
-        px = np.broadcast_to(gx, patch.shape)[inside]
-        py = np.broadcast_to(gy, patch.shape)[inside]
-        k_bg = int(len(v) * _PAIR_BACKGROUND_PERCENTILE / 100)
-        bg = float(np.partition(v, k_bg)[k_bg])
-        wt = np.maximum(v - bg, 0.0)
-        tot = wt.sum()
-        if tot <= 0:
+        pins = _line_pins(win, RADIUS_PER_SIGMA * local[i]) if dark[i] else None
+        if pins is None:
+            pins = _waist_pins(win, RADIUS_PER_SIGMA * local[i])
+        if pins is None:
             continue
-        cx, cy = (wt * px).sum() / tot, (wt * py).sum() / tot
-        dx, dy = px - cx, py - cy
-        sxx, syy, sxy = (wt * dx * dx).sum(), (wt * dy * dy).sum(), (wt * dx * dy).sum()
-        ang = 0.5 * np.arctan2(2 * sxy, sxx - syy)          # the long axis
-        ux, uy = np.cos(ang), np.sin(ang)
-        t = np.arange(-r, r + 1e-9, _PAIR_STEP_PX)
-        o = np.asarray(_PAIR_ACROSS_PX)[:, None]
-        prof = _bilinear(patch, (cx - xa + t * ux - o * uy).ravel(),
-                         (cy - ya + t * uy + o * ux).ravel()).reshape(len(o), len(t)).mean(axis=0) - bg
-        neg, pos = t < 0, t > 0
-        if not (neg.any() and pos.any()):
-            continue
-        a = int(np.argmax(np.where(neg, prof, -np.inf)))
-        c = int(np.argmax(np.where(pos, prof, -np.inf)))
-        low = min(prof[a], prof[c])
-        if (low < PAIR_PEAK_FRACTION * prof.max() or t[c] - t[a] < RADIUS_PER_SIGMA * local[i]
-                or prof[a:c + 1].min() > PAIR_DIP * low):
-            continue
-        side = dx * ux + dy * uy
-        halves = []
-        for half in (side < 0, side >= 0):
-            hw = wt[half]
-            if hw.sum() > 0:
-                halves.append(np.array([(hw * px[half]).sum() / hw.sum(), (hw * py[half]).sum() / hw.sum()]))
-        if len(halves) < 2:
-            continue
-        sep = float(np.hypot(*(halves[0] - halves[1])))
+        sep = float(np.hypot(*(pins[0] - pins[1])))
         drop[i] = True
-        for pin in halves:
+        for pin in pins:
             d, j = tree.query(pin, k=2)
             if any(jj != i and dd < PAIR_TAKEN_FRACTION * sep for dd, jj in zip(d, j)):
                 continue
@@ -158,3 +134,106 @@ def separate_pairs(grey: np.ndarray, cand: np.ndarray, xy: np.ndarray,
     if not new_rows:
         return cand[~drop], xy[~drop]
     return np.vstack([cand[~drop], new_rows]), np.vstack([xy[~drop], new_xy])
+
+
+class _Window:
+    """One examined blob's light: the pixels within its window (``px``, ``py``, above-background weights ``wt``),
+    their centroid, the long axis ``(ux, uy)``, the patch and its offset, the background and the blob's radius ``r``."""
+
+    __slots__ = ("patch", "xa", "ya", "px", "py", "wt", "bg", "cx", "cy", "ux", "uy", "r")
+
+    @classmethod
+    def of(cls, grey: np.ndarray, centre: np.ndarray, r: float, params: DetectionParams) -> "_Window | None":
+        h, w = grey.shape
+        r_win = params.centroid_radius_factor * r + WINDOW_MARGIN_PX
+        x0, y0 = float(centre[0]), float(centre[1])
+        xa, xb = max(0, int(np.floor(x0 - r_win))), min(w - 1, int(np.ceil(x0 + r_win)))
+        ya, yb = max(0, int(np.floor(y0 - r_win))), min(h - 1, int(np.ceil(y0 + r_win)))
+        if xb - xa < 2 or yb - ya < 2:
+            return None
+        self = cls()
+        self.patch = grey[ya:yb + 1, xa:xb + 1].astype(np.float64)
+        gx = np.arange(xa, xb + 1, dtype=np.float64)[None, :]
+        gy = np.arange(ya, yb + 1, dtype=np.float64)[:, None]
+        inside = (gx - x0) ** 2 + (gy - y0) ** 2 <= r_win * r_win
+        v = self.patch[inside]
+        self.px = np.broadcast_to(gx, self.patch.shape)[inside]
+        self.py = np.broadcast_to(gy, self.patch.shape)[inside]
+        k_bg = int(len(v) * _PAIR_BACKGROUND_PERCENTILE / 100)
+        self.bg = float(np.partition(v, k_bg)[k_bg])
+        self.wt = np.maximum(v - self.bg, 0.0)
+        tot = self.wt.sum()
+        if tot <= 0:
+            return None
+        self.cx, self.cy = (self.wt * self.px).sum() / tot, (self.wt * self.py).sum() / tot
+        dx, dy = self.px - self.cx, self.py - self.cy
+        sxx, syy, sxy = (self.wt * dx * dx).sum(), (self.wt * dy * dy).sum(), (self.wt * dx * dy).sum()
+        ang = 0.5 * np.arctan2(2 * sxy, sxx - syy)          # the long axis
+        self.ux, self.uy = np.cos(ang), np.sin(ang)
+        self.xa, self.ya, self.r = xa, ya, r
+        return self
+
+    def sample(self, t: np.ndarray, o: np.ndarray) -> np.ndarray:
+        """Light above the background at ``t`` along the long axis and ``o`` across it from the centroid:
+        (len(o), len(t))."""
+        o = np.asarray(o, np.float64)[:, None]
+        vals = _bilinear(self.patch, (self.cx - self.xa + t * self.ux - o * self.uy).ravel(),
+                         (self.cy - self.ya + t * self.uy + o * self.ux).ravel())
+        return vals.reshape(len(o), len(t)) - self.bg
+
+
+def _line_pins(win: _Window, min_apart: float) -> list[np.ndarray] | None:
+    """Two touching pins: the light along the long axis (3 px across) peaks on either side of a dip
+    (:data:`PAIR_DIP`); the pins are the two halves' centroids. None where it does not."""
+    t = np.arange(-win.r, win.r + 1e-9, _PAIR_STEP_PX)
+    prof = win.sample(t, _PAIR_ACROSS_PX).mean(axis=0)
+    neg, pos = t < 0, t > 0
+    if not (neg.any() and pos.any()):
+        return None
+    a = int(np.argmax(np.where(neg, prof, -np.inf)))
+    c = int(np.argmax(np.where(pos, prof, -np.inf)))
+    low = min(prof[a], prof[c])
+    if low < PAIR_PEAK_FRACTION * prof.max() or t[c] - t[a] < min_apart or prof[a:c + 1].min() > PAIR_DIP * low:
+        return None
+    side = (win.px - win.cx) * win.ux + (win.py - win.cy) * win.uy
+    halves = []
+    for half in (side < 0, side >= 0):
+        hw = win.wt[half]
+        if hw.sum() > 0:
+            halves.append(np.array([(hw * win.px[half]).sum() / hw.sum(), (hw * win.py[half]).sum() / hw.sum()]))
+    return halves if len(halves) == 2 else None
+
+
+def _waist_pins(win: _Window, min_apart: float) -> list[np.ndarray] | None:
+    """Two overlapping pins (:data:`PAIR_WAIST`): the chord of the blob through each point of its long axis,
+    across it, where the light stays above half the window's brightest; two widest chords, a waist between.
+    Each pin at the middle of its widest chords (those within 5 % of its side's widest). None where not."""
+    reach = win.r + 0.5 * min_apart          # past the pins' far ends, where a pair blob's scale falls short of them
+    t = np.arange(-reach, reach + 1e-9, _PAIR_STEP_PX)
+    o = np.arange(-win.r, win.r + 1e-9, _PAIR_STEP_PX)
+    light = win.sample(t, o)
+    c0 = len(o) // 2
+    above = light > 0.5 * float(win.wt.max())
+    hi = np.argmin(np.vstack([above[c0:], np.zeros((1, len(t)), bool)]), axis=0)       # run from the axis outward
+    lo = np.argmin(np.vstack([above[c0::-1], np.zeros((1, len(t)), bool)]), axis=0)
+    width = np.where(above[c0], (hi + lo - 1) * _PAIR_STEP_PX, 0.0)
+    width = np.median(np.vstack([np.r_[width[0], width[:-1]], width, np.r_[width[1:], width[-1]]]), axis=0)
+    mid = (hi - lo) * _PAIR_STEP_PX / 2
+    neg, pos = t < 0, t > 0
+    if not (neg.any() and pos.any()):
+        return None
+    wa, wc = width[neg].max(), width[pos].max()
+    if min(wa, wc) <= 0 or min(wa, wc) < PAIR_PEAK_FRACTION * max(wa, wc):
+        return None
+    if max(width[0] / wa, width[-1] / wc) > PAIR_END_FRACTION:   # each pin's chords narrow again beyond it
+        return None
+    pa = neg & (width >= 0.95 * wa)
+    pc = pos & (width >= 0.95 * wc)
+    ta, tc = float(t[pa].mean()), float(t[pc].mean())
+    between = (t > t[pa].max()) & (t < t[pc].min())
+    if tc - ta < min_apart or not between.any() or width[between].min() > PAIR_WAIST * min(wa, wc):
+        return None
+    pins = []
+    for tt, oo in ((ta, float(mid[pa].mean())), (tc, float(mid[pc].mean()))):
+        pins.append(np.array([win.cx + tt * win.ux - oo * win.uy, win.cy + tt * win.uy + oo * win.ux]))
+    return pins
