@@ -46,7 +46,7 @@ PAIR_TAKEN_FRACTION = 0.5
 #: a maximum on each side of the centre, both at least ``PAIR_PEAK_FRACTION`` of the larger, at least one typical
 #: marker radius apart, with a waist between them down to ``PAIR_WAIST`` of the smaller. Two flat discs of radius r
 #: whose centres lie d apart have the cross-section of the larger chord, 2 sqrt(r^2 - (t -+ d/2)^2): widest at
-#: either centre, 2 sqrt(r^2 - d^2/4) at the waist (0.60-0.80 of it for d = 1.2-1.6 r; measured 0.62-0.82 on the
+#: either centre, 2 sqrt(r^2 - d^2/4) at the waist (0.60-0.80 of it for d = 1.2-1.6 r; measured 0.71-0.85 on the
 #: twin's crests); one marker, round or foreshortened to an ellipse, has a single widest chord at its centre.
 #: Each pin is placed at the middle of its widest chords, its disc's centre. The chords are taken as the median
 #: of three neighbouring ones (a speck touching a marker's end widened one chord on a real TacTip frame), and
