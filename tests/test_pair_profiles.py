@@ -1,0 +1,192 @@
+"""The compiled pair tests (``pipeline.vision.detection.pair_profiles``) against their numpy definitions.
+
+The definitions below are the tests as first written in numpy (a blob's window, its long axis, the dark line
+between touching pins and the waist of overlapping ones). Detection outputs depend on every bit (the tests
+compare floats against thresholds), so the compiled pass must give the same pins bit for bit on every blob
+the detector examines: on synthetic pairs, the twin's crowded crest and the real TacTip frames.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.ndimage import median_filter
+
+from pipeline.vision.detection import detect_markers
+from pipeline.vision.detection import pair_profiles as K
+from pipeline.vision.detection import pairs as P
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_frames"
+CROWDED = Path(__file__).resolve().parent / "data" / "sine_crowded_pins_hexagon217_sep180.npz"
+
+
+def _bilinear(patch, x, y):
+    h, w = patch.shape
+    x = np.clip(x, 0.0, w - 1.0)
+    y = np.clip(y, 0.0, h - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.intp), w - 2) if w > 1 else np.zeros(len(x), np.intp)
+    y0 = np.minimum(np.floor(y).astype(np.intp), h - 2) if h > 1 else np.zeros(len(y), np.intp)
+    fx, fy = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    return ((patch[y0, x0] * (1 - fx) + patch[y0, x1] * fx) * (1 - fy)
+            + (patch[y1, x0] * (1 - fx) + patch[y1, x1] * fx) * fy)
+
+
+class _Window:
+    """A blob's window: pixels within it, weights above the background (10th percentile), centroid, long axis."""
+
+    @classmethod
+    def of(cls, grey, centre, r, r_win):
+        h, w = grey.shape
+        x0, y0 = float(centre[0]), float(centre[1])
+        xa, xb = max(0, int(np.floor(x0 - r_win))), min(w - 1, int(np.ceil(x0 + r_win)))
+        ya, yb = max(0, int(np.floor(y0 - r_win))), min(h - 1, int(np.ceil(y0 + r_win)))
+        if xb - xa < 2 or yb - ya < 2:
+            return None
+        self = cls()
+        self.patch = grey[ya:yb + 1, xa:xb + 1].astype(np.float64)
+        gx = np.arange(xa, xb + 1, dtype=np.float64)[None, :]
+        gy = np.arange(ya, yb + 1, dtype=np.float64)[:, None]
+        inside = (gx - x0) ** 2 + (gy - y0) ** 2 <= r_win * r_win
+        v = self.patch[inside]
+        self.px = np.broadcast_to(gx, self.patch.shape)[inside]
+        self.py = np.broadcast_to(gy, self.patch.shape)[inside]
+        k_bg = int(len(v) * K.BACKGROUND_PERCENTILE / 100)
+        self.bg = float(np.partition(v, k_bg)[k_bg])
+        self.wt = np.maximum(v - self.bg, 0.0)
+        tot = self.wt.sum()
+        if tot <= 0:
+            return None
+        self.cx, self.cy = (self.wt * self.px).sum() / tot, (self.wt * self.py).sum() / tot
+        dx, dy = self.px - self.cx, self.py - self.cy
+        sxx, syy, sxy = (self.wt * dx * dx).sum(), (self.wt * dy * dy).sum(), (self.wt * dx * dy).sum()
+        ang = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+        self.ux, self.uy = np.cos(ang), np.sin(ang)
+        self.xa, self.ya, self.r = xa, ya, r
+        return self
+
+    def sample(self, t, o):
+        o = np.asarray(o, np.float64)[:, None]
+        vals = _bilinear(self.patch, (self.cx - self.xa + t * self.ux - o * self.uy).ravel(),
+                         (self.cy - self.ya + t * self.uy + o * self.ux).ravel())
+        return vals.reshape(len(o), len(t)) - self.bg
+
+
+def _line_pins(win, min_apart):
+    t = np.arange(-win.r, win.r + 1e-9, K.STEP_PX)
+    prof = win.sample(t, K.ACROSS_PX).mean(axis=0)
+    neg, pos = t < 0, t > 0
+    if not (neg.any() and pos.any()):
+        return None
+    a = int(np.argmax(np.where(neg, prof, -np.inf)))
+    c = int(np.argmax(np.where(pos, prof, -np.inf)))
+    low = min(prof[a], prof[c])
+    if low < P.PAIR_PEAK_FRACTION * prof.max() or t[c] - t[a] < min_apart or prof[a:c + 1].min() > P.PAIR_DIP * low:
+        return None
+    side = (win.px - win.cx) * win.ux + (win.py - win.cy) * win.uy
+    halves = []
+    for half in (side < 0, side >= 0):
+        hw = win.wt[half]
+        if hw.sum() > 0:
+            halves.append(np.array([(hw * win.px[half]).sum() / hw.sum(), (hw * win.py[half]).sum() / hw.sum()]))
+    return halves if len(halves) == 2 else None
+
+
+def _waist_pins(win, min_apart):
+    reach = win.r + 0.5 * min_apart
+    t = np.arange(-reach, reach + 1e-9, K.STEP_PX)
+    o = np.arange(-win.r, win.r + 1e-9, K.STEP_PX)
+    light = win.sample(t, o)
+    c0 = len(o) // 2
+    above = light > 0.5 * float(win.wt.max())
+    hi = np.argmin(np.vstack([above[c0:], np.zeros((1, len(t)), bool)]), axis=0)
+    lo = np.argmin(np.vstack([above[c0::-1], np.zeros((1, len(t)), bool)]), axis=0)
+    width = np.where(above[c0], (hi + lo - 1) * K.STEP_PX, 0.0)
+    width = median_filter(width, size=3, mode="nearest")
+    mid = (hi - lo) * K.STEP_PX / 2
+    neg, pos = t < 0, t > 0
+    if not (neg.any() and pos.any()):
+        return None
+    wa, wc = width[neg].max(), width[pos].max()
+    if min(wa, wc) <= 0 or min(wa, wc) < P.PAIR_PEAK_FRACTION * max(wa, wc):
+        return None
+    if max(width[0] / wa, width[-1] / wc) > P.PAIR_END_FRACTION:
+        return None
+    pa = neg & (width >= 0.95 * wa)
+    pc = pos & (width >= 0.95 * wc)
+    ta, tc = float(t[pa].mean()), float(t[pc].mean())
+    between = (t > t[pa].max()) & (t < t[pc].min())
+    if tc - ta < min_apart or not between.any() or width[between].min() > P.PAIR_WAIST * min(wa, wc):
+        return None
+    return [np.array([win.cx + tt * win.ux - oo * win.uy, win.cy + tt * win.uy + oo * win.ux])
+            for tt, oo in ((ta, float(mid[pa].mean())), (tc, float(mid[pc].mean())))]
+
+
+def _reference(grey, xs, ys, rs, r_wins, min_aparts, dark, waist):
+    found = np.zeros(len(xs), bool)
+    pins = np.zeros((len(xs), 2, 2))
+    for k in range(len(xs)):
+        win = _Window.of(grey, (xs[k], ys[k]), rs[k], r_wins[k])
+        if win is None:
+            continue
+        got = _line_pins(win, min_aparts[k]) if dark[k] else None
+        if got is None and waist[k]:
+            got = _waist_pins(win, min_aparts[k])
+        if got is not None:
+            found[k], pins[k] = True, got
+    return found, pins
+
+
+def _views():
+    views = [np.load(CROWDED)["image"]]
+    views += [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(DATA.glob("tactip331_tap_*.png"))[:12]]
+    return views
+
+
+def test_pair_profiles_equal_their_numpy_definitions_on_every_blob_examined(monkeypatch):
+    """Every blob the detector profiles (the crowded crest's pairs; on the real frames, where present, the
+    elongated markers at a pair's scale, ~15 a view) gives the same verdict and the same pins bit for bit."""
+    calls = []
+
+    def recorded(grey, *args):
+        out = K.pair_pins(grey, *args)
+        calls.append((grey, args, out))
+        return out
+
+    monkeypatch.setattr(P, "pair_pins", recorded)
+    views = _views()
+    for view in views:
+        detect_markers(view)
+    examined = sum(len(a[0]) for _, a, _ in calls)
+    split = sum(int(out[0].sum()) for _, _, out in calls)
+    assert split >= 3 and examined >= (100 if len(views) > 1 else 3)
+    for grey, args, (found, pins) in calls:
+        ref_found, ref_pins = _reference(grey, *args[:7])
+        assert np.array_equal(found, ref_found)
+        assert pins[found].tobytes() == ref_pins[found].tobytes()
+
+
+def test_the_kernels_sums_and_ranges_are_numpys():
+    """The kernels' float ranges and sums (``_arange``, ``_sum``: pairwise, eight accumulators, halves a
+    multiple of eight long) equal np.arange and ndarray.sum bit for bit, across the block sizes."""
+    rng = np.random.default_rng(3)
+    for n in [*range(0, 140), 255, 256, 257, 900, 2049]:
+        a = rng.standard_normal(n) * 10.0 ** rng.integers(-3, 4)
+        assert np.float64(K._sum(a)).tobytes() == np.float64(a.sum()).tobytes()
+    for start in -rng.uniform(0.0, 15.0, 300):
+        assert np.array_equal(K._arange(start, -start + 1e-9, K.STEP_PX), np.arange(start, -start + 1e-9, K.STEP_PX))
+
+
+def test_a_window_at_the_image_corner_or_without_light_is_skipped():
+    """A blob whose window is cut to under three pixels by the image edge, or holds no light above its
+    background, is left as it is (not found), as the definition leaves it."""
+    grey = np.full((40, 40), 30, np.uint8)
+    grey[10:20, 10:20] = 200
+    xs, ys = np.array([0.2, 20.0]), np.array([0.3, 30.0])
+    args = (xs, ys, np.array([4.0, 4.0]), np.array([0.5, 6.0]), np.array([4.0, 4.0]), np.array([True, True]),
+            np.array([True, True]))
+    found, _ = K.pair_pins(grey, *args, P.PAIR_PEAK_FRACTION, P.PAIR_DIP, P.PAIR_WAIST, P.PAIR_END_FRACTION)
+    assert not found.any()
+    assert not _reference(grey, *args)[0].any()
