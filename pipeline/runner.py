@@ -389,7 +389,7 @@ def compile_kernels() -> float:
     of the common path; returns the seconds it took: ~30-35 s after an install on the 2-core reference machine,
     well under a second from the cache. ``make setup`` calls it so that the first real frame does not pay."""
     from pipeline.design import DEFAULT_DESIGN, load_design
-    from pipeline.vision.detection import detect_markers, pair_profiles
+    from pipeline.vision.detection.detect import compile_crowded_kernels, detect_markers
     from pipeline.vision.dtrc import code_rings
     from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
 
@@ -405,6 +405,6 @@ def compile_kernels() -> float:
     code_rings(blobs, design)
     code_rings(Blobs(np.vstack([blobs.xy_px[1:], [[2.0, 2.0]]]), np.r_[blobs.sigma_px[1:], blobs.sigma_px[:1]],
                      np.r_[blobs.response[1:], blobs.response[:1]]), design)
-    pair_profiles.compile_pair_pins()   # two touching pins, which these frames do not show
+    compile_crowded_kernels()         # touching and overlapping pins, which these frames do not show
     return time.perf_counter() - t0
 

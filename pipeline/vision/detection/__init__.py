@@ -15,7 +15,8 @@ built on an image pyramid (two scales per octave, octave ``L`` computed on the i
    the median blob, must not be elongated, and must not sit on a saturated plateau.
 
 The Gaussian filtering is OpenCV's; the per-pixel and per-marker loops around it (pyramid
-reductions, DoH and peaks, sparse peak work, suppression, centroids and photometry) are numba-compiled
+reductions, DoH and peaks, sparse peak work, suppression, centroids and photometry, the touching-marker
+screens and the pair tests) are numba-compiled
 with the arithmetic of the numpy/OpenCV code they replaced (tests compare them with OpenCV where it
 has the same operation).
 
@@ -28,8 +29,12 @@ Modules, in the order a frame goes through them:
 - :mod:`.peaks` -- spatial peaks, cross-scale maxima and suppression (step 2);
 - :mod:`.candidates` -- the named columns of the candidate record passed between the steps;
 - :mod:`.photometry` -- sub-pixel centroids, ring, sectors and core per candidate (step 3);
-- :mod:`.rejection` -- glare, rim and debris rejection, touching markers (step 4);
-- :mod:`.detect` -- :func:`detect_markers`, the steps chained.
+- :mod:`.rejection` -- glare, rim and debris rejection, touching markers (step 4), with
+  :mod:`.crowding` (the touching-marker screens);
+- :mod:`.pairs` -- two touching or overlapping pins found as one blob split back into two, with
+  :mod:`.pair_profiles` (the profiles of each examined blob);
+- :mod:`.numpy_order` -- numpy's float ranges, sums and median in the compiled kernels, bit for bit;
+- :mod:`.detect` -- :func:`detect_markers`, the steps chained; :func:`compile_crowded_kernels`.
 
 References
 ----------

@@ -71,3 +71,20 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
         xy, cand = xy[keep], cand[keep]
     order = np.lexsort((xy[:, 0], xy[:, 1]))
     return Blobs(xy[order], cand[order, SIGMA], cand[order, RESPONSE])
+
+
+def compile_crowded_kernels() -> None:
+    """Compile (or load from numba's cache) the kernels only crowded views reach: the pair tests on two
+    touching discs and the touching-marker screens on three touching candidates. A stream whose first frames
+    hold no crowded marker would otherwise pay their compilation (~10 s) on a later frame."""
+    from pipeline.vision.detection.crowding import flanked, ring_spread, split_centroids
+    from pipeline.vision.detection.pair_profiles import compile_pair_pins
+
+    compile_pair_pins()
+    grey = np.full((24, 32), 20, np.uint8)
+    grey[8:16, 6:26] = 200
+    xy = np.array([[10.0, 12.0], [16.0, 12.0], [22.0, 12.0]])
+    radius, every = np.full(3, 3.0), np.ones(3, bool)
+    ring_spread(xy, radius, np.zeros((3, 8)), every, every)
+    flanked(xy, radius, every, every)
+    split_centroids(grey, xy, radius, every, every, DetectionParams())

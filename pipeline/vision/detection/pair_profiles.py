@@ -2,10 +2,10 @@
 its long axis, and the profiles that show two pins (the dark line between touching pins, the waist of overlapping
 ones).
 
-One pass over every examined blob of a view. The arithmetic is numpy's, step for step: float ranges as
-``np.arange`` builds them, sums in numpy's pairwise order, the median of three chords as
+One pass over every examined blob of a view. The arithmetic is numpy's, step for step: float ranges and sums
+in numpy's order (:mod:`pipeline.vision.detection.numpy_order`), the median of three chords as
 ``scipy.ndimage.median_filter(size=3, mode="nearest")``, so a view's blobs come out as they did when each test
-was written in numpy (tests/test_detection.py compares them). On a real TacTip view (~15 blobs profiled) the
+was written in numpy (tests/test_pair_profiles.py compares them). On a real TacTip view (~15 blobs profiled) the
 numpy version took 3.4-3.8 ms, most of it per-call overhead on windows of ~150 pixels.
 """
 
@@ -16,6 +16,8 @@ import math
 import numba
 import numpy as np
 
+from pipeline.vision.detection.numpy_order import arange as _arange, float_sum as _sum
+
 __all__ = ["pair_pins", "compile_pair_pins"]
 
 #: Profile samples per pixel along the long axis and across it, and the across-axis offsets (px) averaged
@@ -24,84 +26,6 @@ STEP_PX = 0.5
 ACROSS_PX = (-1.0, 0.0, 1.0)
 #: Background of the pair window: this percentile of its pixels (the dark skin around the pair).
 BACKGROUND_PERCENTILE = 10
-
-
-@numba.njit(cache=True, nogil=True)
-def _arange(start, stop, step):
-    """``np.arange(start, stop, step)`` for floats, value for value: length ceil((stop - start) / step), the
-    second value start + step and each further one start + i ((start + step) - start), as numpy fills it."""
-    n = int(math.ceil((stop - start) / step))
-    out = np.empty(max(n, 0))
-    if n > 0:
-        out[0] = start
-    if n > 1:
-        out[1] = start + step
-        delta = out[1] - out[0]
-        for i in range(2, n):
-            out[i] = start + i * delta
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _block(a, lo, n):
-    """numpy's pairwise sum of ``a[lo:lo + n]`` for n <= 128: sequential below eight values, else eight
-    accumulators combined in pairs, then the remainder."""
-    if n < 8:
-        res = 0.0
-        for i in range(n):
-            res += a[lo + i]
-        return res
-    r = a[lo:lo + 8].copy()
-    i = 8
-    while i < n - n % 8:
-        for k in range(8):
-            r[k] += a[lo + i + k]
-        i += 8
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
-    while i < n:
-        res += a[lo + i]
-        i += 1
-    return res
-
-
-@numba.njit(cache=True, nogil=True)
-def _pairwise(a, lo, n):
-    """Sum of ``a[lo:lo + n]`` in numpy's pairwise order: halves (the first a multiple of eight long) summed
-    separately down to blocks of at most 128 values. Evaluated with an explicit stack (numba's cache does not
-    keep recursive functions reliably)."""
-    s_lo = np.empty(64, np.int64)
-    s_n = np.empty(64, np.int64)
-    s_st = np.zeros(64, np.int64)
-    vals = np.empty(64)
-    top, nv = 1, 0
-    s_lo[0], s_n[0], s_st[0] = lo, n, 0
-    while top > 0:
-        lo_, n_ = s_lo[top - 1], s_n[top - 1]
-        if n_ <= 128:
-            vals[nv] = _block(a, lo_, n_)
-            nv += 1
-            top -= 1
-            continue
-        n2 = n_ // 2
-        n2 -= n2 % 8
-        if s_st[top - 1] == 0:
-            s_st[top - 1] = 1
-            s_lo[top], s_n[top], s_st[top] = lo_, n2, 0
-            top += 1
-        elif s_st[top - 1] == 1:
-            s_st[top - 1] = 2
-            s_lo[top], s_n[top], s_st[top] = lo_ + n2, n_ - n2, 0
-            top += 1
-        else:
-            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]
-            nv -= 1
-            top -= 1
-    return vals[0]
-
-
-@numba.njit(cache=True, nogil=True)
-def _sum(a):
-    return 0.0 + _pairwise(a, 0, len(a))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -264,7 +188,7 @@ def pair_pins(grey, xs, ys, rs, r_wins, min_aparts, dark, waist, peak, dip, wais
 
 def compile_pair_pins() -> None:
     """Compile (or load from numba's cache) :func:`pair_pins` for the types detection passes, on two touching
-    discs: a view whose first frame holds no pair candidate would otherwise pay the compilation later."""
+    discs (:func:`pipeline.vision.detection.detect.compile_crowded_kernels`)."""
     grey = np.full((24, 32), 20, np.uint8)
     yy, xx = np.mgrid[:24, :32]
     grey[((xx - 12) ** 2 + (yy - 12) ** 2 <= 25) | ((xx - 20) ** 2 + (yy - 12) ** 2 <= 25)] = 200

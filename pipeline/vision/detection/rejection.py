@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.vision.detection.candidates import ELONGATION, MEASURE_SIGMA, RADIUS_PER_SIGMA, SIGMA
-from pipeline.vision.detection.images import U8_SCALE
+from pipeline.vision.detection.crowding import flanked, ring_spread, split_centroids
+from pipeline.vision.detection.numpy_order import median as _median
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import suppress
 from pipeline.vision.detection.scale_space import scale_below_lowest
-from pipeline.vision.detection.photometry import (RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS,
-                                                  WINDOW_MARGIN_PX, Measurements, group_offsets, refine_and_measure)
+from pipeline.vision.detection.photometry import Measurements, group_offsets, refine_and_measure
 
 #: Floor (on the [0, 1] scale) of the contrast that scales the isolation limits, so that a candidate
 #: without contrast gets a tiny positive limit rather than zero or a negative one.
@@ -25,140 +24,12 @@ MIN_TYPICAL_MARKERS = 5
 #: exposure clips every marker: saturation then says nothing).
 _CLIPPED_CORE_SATURATION = 0.5
 _MAX_GLARE_CORE_SATURATION = 0.3
-#: A touching peer explains the ring sectors whose centre direction is within this angle (rad) of
-#: its own: the sector it lies in and, when it sits near a boundary, the next one.
-_PEER_HALF_ANGLE_RAD = np.pi / 4
 #: A pin squeezed between touching neighbours on opposite sides reads elongated: their light fills
 #: the dark on both flanks, which flattens its response along the row (measured 5.4 and 6.3 for pins
 #: at 5 mm of press in a 217-pin dome). Such a candidate is a marker up to this multiple of
-#: ``max_elongation`` when peers lighting its ring (as :func:`_ring_spread` reckons them) lie on
-#: opposite sides of it, at least ``_FLANK_MIN_ANGLE_RAD`` apart as seen from its centre.
+#: ``max_elongation`` when peers lighting its ring (as :func:`pipeline.vision.detection.crowding.ring_spread` reckons them) lie on
+#: opposite sides of it (:func:`pipeline.vision.detection.crowding.flanked`).
 _SQUEEZED_ELONGATION_FACTOR = 2.0
-_FLANK_MIN_ANGLE_RAD = 3 * np.pi / 4
-
-
-@numba.njit(cache=True, nogil=True)
-def _median(a):
-    """``np.median`` of a 1-D float64 array, the same value bit for bit (middle sample, or the two
-    middle samples' sum halved), NaN when empty or when any sample is NaN; without numpy's per-call
-    overhead, which is most of the cost for the few hundred blobs of a view."""
-    n = len(a)
-    if n == 0:
-        return np.nan
-    s = np.sort(a)
-    if np.isnan(s[n - 1]):
-        return np.nan
-    m = n // 2
-    if n % 2 == 1:
-        return s[m]
-    return (s[m - 1] + s[m]) / 2.0
-
-
-def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: np.ndarray,
-                 examine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Brightest ring sector (minus the ring median) per candidate, not counting sectors that look at
-    a touching marker; and whether the candidate touches one.
-
-    A marker squeezed against its neighbours (pins crowding under a steep flank) has bright ring
-    sectors too, but that light is another marker's: sectors whose centre direction lies within
-    ``_PEER_HALF_ANGLE_RAD`` (45 deg) of a ``peers`` candidate (one that passed the contrast, shape, saturation and upper size
-    tests) closer than the two rings' reach (``RING_IN r + RING_WIDTH_PX + r_peer``) are left out. Glare stays
-    rejected: a bright region that is not itself a marker-sized blob explains no sector. At least half
-    the sectors must remain, else the candidate keeps its plain brightest sector. Only candidates with
-    ``examine`` set are looked at (the others keep their plain spread and are not ``crowded``).
-
-    Returns
-    -------
-    spread : (N,) brightest unexplained sector minus the ring median
-    crowded : (N,) bool, a peer touches the candidate's ring
-    """
-    spread = sectors.max(axis=1)
-    crowded = np.zeros(len(xy), dtype=bool)
-    idx = np.nonzero(peers)[0]
-    if len(idx) < 2 or not examine.any():
-        return spread, crowded
-    tree = cKDTree(xy[idx])
-    reach = RING_IN * radius + RING_WIDTH_PX
-    centres = -np.pi + (np.arange(SECTORS) + 0.5) * (2 * np.pi / SECTORS)
-    for i in np.nonzero(examine)[0]:
-        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
-        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
-        if not near:
-            continue
-        crowded[i] = True
-        d = xy[near] - xy[i]
-        ang = np.arctan2(d[:, 1], d[:, 0])
-        off = np.abs((centres[None, :] - ang[:, None] + np.pi) % (2 * np.pi) - np.pi)
-        masked = (off < _PEER_HALF_ANGLE_RAD).any(axis=0)
-        if masked.sum() <= SECTORS // 2:
-            spread[i] = sectors[i, ~masked].max()
-    return spread, crowded
-
-
-def _flanked(xy: np.ndarray, radius: np.ndarray, which: np.ndarray, peers: np.ndarray) -> np.ndarray:
-    """(N,) bool: candidates of ``which`` with two ``peers`` on opposite sides (seen at least
-    ``_FLANK_MIN_ANGLE_RAD`` apart) each close enough to light its ring (``RING_IN r + RING_WIDTH_PX
-    + r_peer``, as in :func:`_ring_spread`)."""
-    out = np.zeros(len(xy), bool)
-    idx = np.nonzero(peers)[0]
-    if len(idx) < 2 or not which.any():
-        return out
-    tree = cKDTree(xy[idx])
-    reach = RING_IN * radius + RING_WIDTH_PX
-    for i in np.nonzero(which)[0]:
-        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
-        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
-        if len(near) < 2:
-            continue
-        d = xy[near] - xy[i]
-        ang = np.arctan2(d[:, 1], d[:, 0])
-        gap = np.abs((ang[:, None] - ang[None, :] + np.pi) % (2 * np.pi) - np.pi)
-        out[i] = bool((gap >= _FLANK_MIN_ANGLE_RAD).any())
-    return out
-
-
-def _split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
-                     peers: np.ndarray, params: DetectionParams) -> np.ndarray:
-    """Centroids of touching markers with each neighbour's light excluded.
-
-    The plain centroid window (``centroid_radius_factor`` x r) of a marker squeezed against another
-    takes in the neighbour's edge and is pulled toward it (measured ~1.5 px for a 1 px gap). For the
-    candidates in ``which`` the window is split Voronoi-wise: pixels nearer to a ``peers`` centre than
-    to this one are left out; background = median of the window's remaining pixels outside ``RING_IN r``.
-    Two re-centred passes, as for isolated markers. Returns the updated (N, 2) centres.
-    """
-    out = xy.copy()
-    if not which.any():
-        return out
-    idx = np.nonzero(peers)[0]
-    tree = cKDTree(xy[idx])
-    h, w = grey.shape
-    for i in np.nonzero(which)[0]:
-        r = float(radius[i])
-        r_win = params.centroid_radius_factor * r + WINDOW_MARGIN_PX
-        nb = [idx[j] for j in tree.query_ball_point(xy[i], 2 * r_win) if idx[j] != i]
-        c = xy[i].copy()
-        for _ in range(max(1, params.centroid_iterations)):
-            x0, x1 = int(max(0, np.floor(c[0] - r_win))), int(min(w - 1, np.ceil(c[0] + r_win)))
-            y0, y1 = int(max(0, np.floor(c[1] - r_win))), int(min(h - 1, np.ceil(c[1] + r_win)))
-            gx, gy = np.meshgrid(np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64))
-            d2 = (gx - c[0]) ** 2 + (gy - c[1]) ** 2
-            own = d2 <= r_win * r_win
-            for j in nb:
-                own &= d2 < (gx - xy[j, 0]) ** 2 + (gy - xy[j, 1]) ** 2
-            v = (grey[y0:y1 + 1, x0:x1 + 1] * U8_SCALE).astype(np.float64)
-            ring = own & (d2 >= (RING_IN * r) ** 2)
-            bg = float(np.median(v[ring])) if ring.any() else 0.0
-            wts = np.where(own, np.maximum(v - bg, 0.0), 0.0)
-            tot = wts.sum()
-            if tot <= 0:
-                break
-            new = np.array([(wts * gx).sum() / tot, (wts * gy).sum() / tot])
-            if np.hypot(*(new - xy[i])) > RUNAWAY_FRACTION * r + RUNAWAY_PX:
-                break
-            c = new
-        out[i] = c
-    return out
 
 
 def _inside_hull(xy: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -203,7 +74,7 @@ def separate_debris(grey: np.ndarray, cand_all: np.ndarray, cand: np.ndarray, me
     The typical marker is the median scale of the candidates in ``cand`` (suppressed, measured as
     ``measured``) that pass the strict tests; debris is every candidate of ``cand_all`` (unsuppressed)
     below 1/``params.debris_size_ratio`` of it. Debris is still measured, as a blob that may light a
-    neighbour's ring (see :func:`_ring_spread`), and is never kept. Returns the candidates (markers
+    neighbour's ring (see :func:`pipeline.vision.detection.crowding.ring_spread`), and is never kept. Returns the candidates (markers
     first), the (N,) debris mask and their measurements; unchanged, with no debris, when fewer than
     :data:`MIN_TYPICAL_MARKERS` pass the strict tests.
     """
@@ -240,7 +111,7 @@ def _local_scale(cand: np.ndarray, typical: np.ndarray, which: np.ndarray) -> np
     for r, (i, row) in enumerate(zip(idx, j)):
         nb = ref[row]
         nb = nb[nb != i][:LOCAL_SIZE_NEIGHBOURS]
-        out[r] = float(np.median(cand[nb, SIGMA]))
+        out[r] = _median(cand[nb, SIGMA])
     return out
 
 
@@ -250,9 +121,9 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
 
     Contrast always; with ``params.rejections``: elongation, ring saturation and isolation, then,
     against the typical marker of this image (once :data:`MIN_TYPICAL_MARKERS` pass the strict tests),
-    size, touching neighbours (:func:`_ring_spread`), debris, background level and core saturation.
+    size, touching neighbours (:func:`pipeline.vision.detection.crowding.ring_spread`), debris, background level and core saturation.
     Returns the (N,) keep mask and the (N, 2) centres (``measured.xy`` but for crowded markers,
-    re-centred by :func:`_split_centroids`).
+    re-centred by :func:`pipeline.vision.detection.crowding.split_centroids`).
     """
     xy, contrast, sectors, sat, core_sat = measured
     keep = contrast >= params.min_contrast
@@ -296,9 +167,9 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
                 & (cand[:, ELONGATION] > params.max_elongation)
                 & (cand[:, ELONGATION] <= _SQUEEZED_ELONGATION_FACTOR * params.max_elongation))
     if squeezed.any():
-        keep |= _flanked(xy, radius, squeezed, keep & big_ok & ~debris)
+        keep |= flanked(xy, radius, squeezed, keep & big_ok & ~debris)
     peers = keep & big_ok & (~debris | inside)
-    spread, crowded = _ring_spread(xy, radius, sectors, peers, keep & (~isolated | small))
+    spread, crowded = ring_spread(xy, radius, sectors, peers, keep & (~isolated | small))
     keep &= (spread <= limit) & big_ok
     keep &= ~small | (crowded & (cand[:, SIGMA] >= med / params.max_size_ratio ** 2))
     if params.debris_size_ratio is not None:
@@ -308,7 +179,7 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
         bg = _ring_background(grey, xy[idx], radius[idx])
         keep[idx[~(bg <= params.max_background_ratio * contrast[idx])]] = False
     # (debris touching a marker is excluded from its centroid as a touching marker is)
-    xy = _split_centroids(grey, xy, radius, keep & crowded, (keep & big_ok) | (peers & debris), params)
+    xy = split_centroids(grey, xy, radius, keep & crowded, (keep & big_ok) | (peers & debris), params)
     if _median(core_sat[keep]) < _CLIPPED_CORE_SATURATION:
         keep &= core_sat <= _MAX_GLARE_CORE_SATURATION
     return keep, xy

@@ -1,9 +1,11 @@
-"""The compiled pair tests (``pipeline.vision.detection.pair_profiles``) against their numpy definitions.
+"""The compiled detection passes for crowded markers against their numpy definitions.
 
-The definitions below are the tests as first written in numpy (a blob's window, its long axis, the dark line
-between touching pins and the waist of overlapping ones). Detection outputs depend on every bit (the tests
-compare floats against thresholds), so the compiled pass must give the same pins bit for bit on every blob
-the detector examines: on synthetic pairs, the twin's crowded crest and the real TacTip frames.
+The definitions below are the code as first written in numpy: the pair tests (``pair_profiles``: a blob's window,
+its long axis, the dark line between touching pins, the waist of overlapping ones) and the touching-marker
+screens (``crowding``: ring sectors lit by a touching peer, candidates flanked on opposite sides, centroids with
+a neighbour's light left out). Detection outputs depend on every bit (the tests compare floats against
+thresholds), so each compiled pass must give the same result bit for bit on every candidate the detector
+examines: on the twin's crowded crest and the real TacTip frames.
 """
 
 from __future__ import annotations
@@ -13,10 +15,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy.ndimage import median_filter
+from scipy.spatial import cKDTree
 
-from pipeline.vision.detection import detect_markers
+from pipeline.vision.detection import DetectionParams, detect_markers
+from pipeline.vision.detection import crowding as C
+from pipeline.vision.detection import rejection as R
 from pipeline.vision.detection import pair_profiles as K
 from pipeline.vision.detection import pairs as P
+from pipeline.vision.detection.images import U8_SCALE
+from pipeline.vision.detection.numpy_order import arange, float_sum
+from pipeline.vision.detection.photometry import RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS, \
+    WINDOW_MARGIN_PX
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_frames"
 CROWDED = Path(__file__).resolve().parent / "data" / "sine_crowded_pins_hexagon217_sep180.npz"
@@ -139,6 +148,86 @@ def _reference(grey, xs, ys, rs, r_wins, min_aparts, dark, waist):
     return found, pins
 
 
+def _ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: np.ndarray,
+                 examine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    spread = sectors.max(axis=1)
+    crowded = np.zeros(len(xy), dtype=bool)
+    idx = np.nonzero(peers)[0]
+    if len(idx) < 2 or not examine.any():
+        return spread, crowded
+    tree = cKDTree(xy[idx])
+    reach = RING_IN * radius + RING_WIDTH_PX
+    centres = -np.pi + (np.arange(SECTORS) + 0.5) * (2 * np.pi / SECTORS)
+    for i in np.nonzero(examine)[0]:
+        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
+        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
+        if not near:
+            continue
+        crowded[i] = True
+        d = xy[near] - xy[i]
+        ang = np.arctan2(d[:, 1], d[:, 0])
+        off = np.abs((centres[None, :] - ang[:, None] + np.pi) % (2 * np.pi) - np.pi)
+        masked = (off < C.PEER_HALF_ANGLE_RAD).any(axis=0)
+        if masked.sum() <= SECTORS // 2:
+            spread[i] = sectors[i, ~masked].max()
+    return spread, crowded
+
+
+def _flanked(xy: np.ndarray, radius: np.ndarray, which: np.ndarray, peers: np.ndarray) -> np.ndarray:
+    out = np.zeros(len(xy), bool)
+    idx = np.nonzero(peers)[0]
+    if len(idx) < 2 or not which.any():
+        return out
+    tree = cKDTree(xy[idx])
+    reach = RING_IN * radius + RING_WIDTH_PX
+    for i in np.nonzero(which)[0]:
+        near = [idx[j] for j in tree.query_ball_point(xy[i], reach[i] + radius.max()) if idx[j] != i]
+        near = [j for j in near if np.hypot(*(xy[j] - xy[i])) <= reach[i] + radius[j]]
+        if len(near) < 2:
+            continue
+        d = xy[near] - xy[i]
+        ang = np.arctan2(d[:, 1], d[:, 0])
+        gap = np.abs((ang[:, None] - ang[None, :] + np.pi) % (2 * np.pi) - np.pi)
+        out[i] = bool((gap >= C.FLANK_MIN_ANGLE_RAD).any())
+    return out
+
+
+def _split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which: np.ndarray,
+                     peers: np.ndarray, params: DetectionParams) -> np.ndarray:
+    out = xy.copy()
+    if not which.any():
+        return out
+    idx = np.nonzero(peers)[0]
+    tree = cKDTree(xy[idx])
+    h, w = grey.shape
+    for i in np.nonzero(which)[0]:
+        r = float(radius[i])
+        r_win = params.centroid_radius_factor * r + WINDOW_MARGIN_PX
+        nb = [idx[j] for j in tree.query_ball_point(xy[i], 2 * r_win) if idx[j] != i]
+        c = xy[i].copy()
+        for _ in range(max(1, params.centroid_iterations)):
+            x0, x1 = int(max(0, np.floor(c[0] - r_win))), int(min(w - 1, np.ceil(c[0] + r_win)))
+            y0, y1 = int(max(0, np.floor(c[1] - r_win))), int(min(h - 1, np.ceil(c[1] + r_win)))
+            gx, gy = np.meshgrid(np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64))
+            d2 = (gx - c[0]) ** 2 + (gy - c[1]) ** 2
+            own = d2 <= r_win * r_win
+            for j in nb:
+                own &= d2 < (gx - xy[j, 0]) ** 2 + (gy - xy[j, 1]) ** 2
+            v = (grey[y0:y1 + 1, x0:x1 + 1] * U8_SCALE).astype(np.float64)
+            ring = own & (d2 >= (RING_IN * r) ** 2)
+            bg = float(np.median(v[ring])) if ring.any() else 0.0
+            wts = np.where(own, np.maximum(v - bg, 0.0), 0.0)
+            tot = wts.sum()
+            if tot <= 0:
+                break
+            new = np.array([(wts * gx).sum() / tot, (wts * gy).sum() / tot])
+            if np.hypot(*(new - xy[i])) > RUNAWAY_FRACTION * r + RUNAWAY_PX:
+                break
+            c = new
+        out[i] = c
+    return out
+
+
 def _views():
     views = [np.load(CROWDED)["image"]]
     views += [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(DATA.glob("tactip331_tap_*.png"))[:12]]
@@ -174,9 +263,9 @@ def test_the_kernels_sums_and_ranges_are_numpys():
     rng = np.random.default_rng(3)
     for n in [*range(0, 140), 255, 256, 257, 900, 2049]:
         a = rng.standard_normal(n) * 10.0 ** rng.integers(-3, 4)
-        assert np.float64(K._sum(a)).tobytes() == np.float64(a.sum()).tobytes()
+        assert np.float64(float_sum(a)).tobytes() == np.float64(a.sum()).tobytes()
     for start in -rng.uniform(0.0, 15.0, 300):
-        assert np.array_equal(K._arange(start, -start + 1e-9, K.STEP_PX), np.arange(start, -start + 1e-9, K.STEP_PX))
+        assert np.array_equal(arange(start, -start + 1e-9, K.STEP_PX), np.arange(start, -start + 1e-9, K.STEP_PX))
 
 
 def test_a_window_at_the_image_corner_or_without_light_is_skipped():
@@ -190,3 +279,42 @@ def test_a_window_at_the_image_corner_or_without_light_is_skipped():
     found, _ = K.pair_pins(grey, *args, P.PAIR_PEAK_FRACTION, P.PAIR_DIP, P.PAIR_WAIST, P.PAIR_END_FRACTION)
     assert not found.any()
     assert not _reference(grey, *args)[0].any()
+
+
+def test_touching_marker_screens_equal_their_numpy_definitions(monkeypatch):
+    """Every call the detector makes to the ring-sector and split-centroid screens (the crowded crest; the real
+    frames, where present: ~30 candidates a view examined, ~10 re-centred) gives the same result bit for bit as
+    the numpy definitions."""
+    calls = []
+    for name in ("ring_spread", "split_centroids"):
+        def recorded(*args, _f=getattr(R, name), _n=name):
+            out = _f(*args)
+            calls.append((_n, args, out))
+            return out
+        monkeypatch.setattr(R, name, recorded)
+    for view in _views():
+        detect_markers(view)
+    assert sum(int(a[4].sum()) for n, a, _ in calls if n == "ring_spread") >= 3
+    assert sum(int(a[3].sum()) for n, a, _ in calls if n == "split_centroids") >= 3
+    for name, args, out in calls:
+        if name == "ring_spread":
+            ref = _ring_spread(*args)
+            assert out[0].tobytes() == ref[0].tobytes() and np.array_equal(out[1], ref[1])
+        else:
+            assert out.tobytes() == _split_centroids(*args).tobytes()
+
+
+def test_flanked_candidates_equal_their_numpy_definition():
+    """Random crowds of candidates (some squeezed between two peers, some touching one): the same candidates
+    are flanked as by the numpy definition, and some are."""
+    rng = np.random.default_rng(8)
+    n_flanked = 0
+    for _ in range(200):
+        n = int(rng.integers(3, 40))
+        xy = rng.uniform(0, 60, (n, 2))
+        radius = rng.uniform(2.0, 6.0, n)
+        which, peers = rng.random(n) < 0.5, rng.random(n) < 0.7
+        got = C.flanked(xy, radius, which, peers)
+        assert np.array_equal(got, _flanked(xy, radius, which, peers))
+        n_flanked += int(got.sum())
+    assert n_flanked > 20
