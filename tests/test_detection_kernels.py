@@ -22,6 +22,7 @@ from pipeline.vision.detection import crowding as C
 from pipeline.vision.detection import rejection as R
 from pipeline.vision.detection import pair_profiles as K
 from pipeline.vision.detection import pairs as P
+from pipeline.vision.detection.candidates import SIGMA
 from pipeline.vision.detection.images import U8_SCALE
 from pipeline.vision.detection.numpy_order import arange, float_sum
 from pipeline.vision.detection.photometry import RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS, \
@@ -228,6 +229,62 @@ def _split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which
     return out
 
 
+def _inside_hull(xy, ref):
+    from scipy.spatial import Delaunay, QhullError
+
+    if len(ref) < 3:
+        return np.zeros(len(xy), bool)
+    spacing = float(np.median(cKDTree(ref).query(ref, k=2)[0][:, 1]))
+    c = ref.mean(axis=0)
+    r = np.maximum(np.hypot(*(ref - c).T), 1e-9)[:, None]
+    grown = c + (ref - c) * (1.0 + 0.5 * spacing / r)
+    try:
+        return Delaunay(grown).find_simplex(xy) >= 0
+    except QhullError:
+        return np.zeros(len(xy), bool)
+
+
+def _ring_background(grey, xy, radius):
+    from pipeline.vision.detection.photometry import group_offsets
+
+    h, w = grey.shape
+    out = np.full(len(xy), np.nan)
+    for i, ((u, v), r) in enumerate(zip(xy, radius)):
+        dx, dy = group_offsets(float(r), DetectionParams())[:2]
+        x, y = int(np.rint(u)) + dx, int(np.rint(v)) + dy
+        ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+        if ok.any():
+            out[i] = float(np.median(grey[y[ok], x[ok]])) / 255.0
+    return out
+
+
+def _local_scale(cand, typical, which):
+    ref = np.flatnonzero(typical)
+    out = np.full(int(which.sum()), np.inf)
+    if len(ref) < R.LOCAL_SIZE_NEIGHBOURS + 1:
+        return out
+    xy = cand[:, :2]
+    _, j = cKDTree(xy[ref]).query(xy[which], k=R.LOCAL_SIZE_NEIGHBOURS + 1)
+    for r, (i, row) in enumerate(zip(np.flatnonzero(which), j)):
+        nb = ref[row]
+        out[r] = float(np.median(cand[nb[nb != i][:R.LOCAL_SIZE_NEIGHBOURS], SIGMA]))
+    return out
+
+
+def _spacing_suppress(xy, response, fraction):
+    tree = cKDTree(xy)
+    d, _ = tree.query(xy, k=2)
+    radius = fraction * float(np.median(d[:, 1]))
+    keep = np.ones(len(xy), bool)
+    for i in np.argsort(-response, kind="stable"):
+        if not keep[i]:
+            continue
+        for j in tree.query_ball_point(xy[i], radius):
+            if j != i and keep[j] and np.hypot(*(xy[j] - xy[i])) < radius:
+                keep[j] = False
+    return keep
+
+
 def _views():
     views = [np.load(CROWDED)["image"]]
     views += [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(DATA.glob("tactip331_tap_*.png"))[:12]]
@@ -241,7 +298,7 @@ def test_pair_profiles_equal_their_numpy_definitions_on_every_blob_examined(monk
 
     def recorded(grey, *args):
         out = K.pair_pins(grey, *args)
-        calls.append((grey, args, out))
+        calls.append((grey.copy(), [np.array(a, copy=True) for a in args], out))
         return out
 
     monkeypatch.setattr(P, "pair_pins", recorded)
@@ -289,7 +346,7 @@ def test_touching_marker_screens_equal_their_numpy_definitions(monkeypatch):
     for name in ("ring_spread", "split_centroids"):
         def recorded(*args, _f=getattr(R, name), _n=name):
             out = _f(*args)
-            calls.append((_n, args, out))
+            calls.append((_n, [a if isinstance(a, DetectionParams) else np.array(a, copy=True) for a in args], out))
             return out
         monkeypatch.setattr(R, name, recorded)
     for view in _views():
@@ -318,3 +375,29 @@ def test_flanked_candidates_equal_their_numpy_definition():
         assert np.array_equal(got, _flanked(xy, radius, which, peers))
         n_flanked += int(got.sum())
     assert n_flanked > 20
+
+
+def test_the_marker_field_screens_equal_their_numpy_definitions(monkeypatch):
+    """With the monocular dome's parameters (debris, the marker field's hull, the ring background, spacing) every
+    call the detector makes on the crowded crest and the real frames (where present) gives the same result bit
+    for bit as the numpy definitions: the field inside the grown hull of the strict markers (Qhull's triangulation
+    there, its hull's facets here), the ring background medians, each small candidate's local size, the spacing
+    suppression."""
+    from pipeline.vision.detection import MONOCULAR_DOME
+    from pipeline.vision.detection import detect as D
+
+    calls = []
+    for mod, name, ref in ((R, "_inside_hull", _inside_hull), (R, "_ring_background", _ring_background),
+                           (R, "_local_scale", _local_scale), (D, "spacing_suppress", _spacing_suppress)):
+        def recorded(*args, _f=getattr(mod, name), _ref=ref):
+            out = _f(*args)
+            calls.append((_ref, [np.array(a, copy=True) for a in args], out))    # the caller edits its masks
+            return out
+        monkeypatch.setattr(mod, name, recorded)
+    for view in _views():
+        detect_markers(view, params=MONOCULAR_DOME)
+    assert {ref.__name__ for ref, _, _ in calls} == {"_inside_hull", "_ring_background", "_local_scale",
+                                                      "_spacing_suppress"}
+    assert sum(int(out.sum()) for ref, _, out in calls if ref is _inside_hull) >= 100
+    for ref, args, out in calls:
+        assert np.asarray(out).tobytes() == np.asarray(ref(*args)).tobytes(), ref.__name__

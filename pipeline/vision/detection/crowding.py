@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.vision.detection.images import U8_SCALE
 from pipeline.vision.detection.numpy_order import float_sum, median
 from pipeline.vision.detection.params import DetectionParams
+from pipeline.vision.detection.sweep import by_x, x_range
 from pipeline.vision.detection.photometry import RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS, \
     WINDOW_MARGIN_PX
 
@@ -31,11 +32,14 @@ _SECTOR_CENTRES = -np.pi + (np.arange(SECTORS) + 0.5) * (2 * np.pi / SECTORS)
 
 
 @numba.njit(cache=True, nogil=True)
-def _touching(xy, radius, reach, peers, i):
-    """Indices of the ``peers`` (other than ``i``) close enough to light candidate ``i``'s ring."""
-    out = np.empty(len(peers), np.int64)
+def _touching(xy, radius, reach, order, xs, rmax, i):
+    """Indices of the peers (``order``, x-ordered as ``xs``; other than ``i``) close enough to light candidate
+    ``i``'s ring."""
+    lo, hi = x_range(xs, xy[i, 0], reach[i] + rmax)
+    out = np.empty(hi - lo, np.int64)
     m = 0
-    for j in peers:
+    for k in range(lo, hi):
+        j = order[k]
         if j != i and math.hypot(xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]) <= reach[i] + radius[j]:
             out[m] = j
             m += 1
@@ -43,11 +47,11 @@ def _touching(xy, radius, reach, peers, i):
 
 
 @numba.njit(cache=True, nogil=True)
-def _ring_spread_kernel(xy, radius, sectors, spread, reach, peers, examine, centres, half_angle):
+def _ring_spread_kernel(xy, radius, sectors, spread, reach, order, xs, rmax, examine, centres, half_angle):
     crowded = np.zeros(len(xy), np.bool_)
     n_sec = sectors.shape[1]
     for i in examine:
-        near = _touching(xy, radius, reach, peers, i)
+        near = _touching(xy, radius, reach, order, xs, rmax, i)
         if len(near) == 0:
             continue
         crowded[i] = True
@@ -89,19 +93,20 @@ def ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: 
     crowded : (N,) bool, a peer touches the candidate's ring
     """
     spread = sectors.max(axis=1)
-    idx = np.flatnonzero(peers)
-    if len(idx) < 2 or not examine.any():
+    if np.count_nonzero(peers) < 2 or not examine.any():
         return spread, np.zeros(len(xy), dtype=bool)
-    return _ring_spread_kernel(np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(radius, np.float64),
-                               np.ascontiguousarray(sectors, np.float64), spread, RING_IN * radius + RING_WIDTH_PX,
-                               idx, np.flatnonzero(examine), _SECTOR_CENTRES, PEER_HALF_ANGLE_RAD)
+    xy = np.ascontiguousarray(xy, np.float64)
+    radius = np.ascontiguousarray(radius, np.float64)
+    return _ring_spread_kernel(xy, radius, np.ascontiguousarray(sectors, np.float64), spread,
+                               RING_IN * radius + RING_WIDTH_PX, *by_x(xy, peers), float(radius.max()),
+                               np.flatnonzero(examine), _SECTOR_CENTRES, PEER_HALF_ANGLE_RAD)
 
 
 @numba.njit(cache=True, nogil=True)
-def _flanked_kernel(xy, radius, reach, peers, which, min_angle):
+def _flanked_kernel(xy, radius, reach, order, xs, rmax, which, min_angle):
     out = np.zeros(len(xy), np.bool_)
     for i in which:
-        near = _touching(xy, radius, reach, peers, i)
+        near = _touching(xy, radius, reach, order, xs, rmax, i)
         if len(near) < 2:
             continue
         ang = np.empty(len(near))
@@ -118,23 +123,26 @@ def flanked(xy: np.ndarray, radius: np.ndarray, which: np.ndarray, peers: np.nda
     """(N,) bool: candidates of ``which`` with two ``peers`` on opposite sides (seen at least
     :data:`FLANK_MIN_ANGLE_RAD` apart) each close enough to light its ring (``RING_IN r + RING_WIDTH_PX
     + r_peer``, as in :func:`ring_spread`)."""
-    idx = np.flatnonzero(peers)
-    if len(idx) < 2 or not which.any():
+    if np.count_nonzero(peers) < 2 or not which.any():
         return np.zeros(len(xy), bool)
-    return _flanked_kernel(np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(radius, np.float64),
-                           RING_IN * radius + RING_WIDTH_PX, idx, np.flatnonzero(which), FLANK_MIN_ANGLE_RAD)
+    xy = np.ascontiguousarray(xy, np.float64)
+    radius = np.ascontiguousarray(radius, np.float64)
+    return _flanked_kernel(xy, radius, RING_IN * radius + RING_WIDTH_PX, *by_x(xy, peers), float(radius.max()),
+                           np.flatnonzero(which), FLANK_MIN_ANGLE_RAD)
 
 
 @numba.njit(cache=True, nogil=True)
-def _split_kernel(grey, xy, radius, which, peers, radius_factor, iterations, u8_scale):
+def _split_kernel(grey, xy, radius, which, order, xs, radius_factor, iterations, u8_scale):
     out = xy.copy()
     h, w = grey.shape
     for i in which:
         r = radius[i]
         r_win = radius_factor * r + WINDOW_MARGIN_PX
-        nb = np.empty(len(peers), np.int64)
+        lo, hi = x_range(xs, xy[i, 0], 2 * r_win)
+        nb = np.empty(hi - lo, np.int64)
         m = 0
-        for j in peers:                       # the neighbours within twice the window of the blob's own centre
+        for k in range(lo, hi):               # the neighbours within twice the window of the blob's own centre
+            j = order[k]
             if j != i and (xy[j, 0] - xy[i, 0]) ** 2 + (xy[j, 1] - xy[i, 1]) ** 2 <= (2 * r_win) ** 2:
                 nb[m] = j
                 m += 1
@@ -193,6 +201,7 @@ def split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which:
     """
     if not which.any():
         return xy.copy()
-    return _split_kernel(np.ascontiguousarray(grey), np.ascontiguousarray(xy, np.float64),
-                         np.ascontiguousarray(radius, np.float64), np.flatnonzero(which), np.flatnonzero(peers),
-                         float(params.centroid_radius_factor), int(params.centroid_iterations), U8_SCALE)
+    xy = np.ascontiguousarray(xy, np.float64)
+    return _split_kernel(np.ascontiguousarray(grey), xy, np.ascontiguousarray(radius, np.float64),
+                         np.flatnonzero(which), *by_x(xy, peers), float(params.centroid_radius_factor),
+                         int(params.centroid_iterations), U8_SCALE)

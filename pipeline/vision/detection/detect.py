@@ -74,11 +74,13 @@ def detect_markers(image: np.ndarray, *, params: DetectionParams = DetectionPara
 
 
 def compile_crowded_kernels() -> None:
-    """Compile (or load from numba's cache) the kernels only crowded views reach: the pair tests on two
-    touching discs and the touching-marker screens on three touching candidates. A stream whose first frames
-    hold no crowded marker would otherwise pay their compilation (~10 s) on a later frame."""
+    """Compile (or load from numba's cache) the kernels only crowded views or the monocular dome's screens reach:
+    the pair tests on two touching discs, the touching-marker screens on three touching candidates, the ring
+    background, the local size and the spacing suppression. A stream whose first frames reach none of them would
+    otherwise pay their compilation (~10-20 s) on a later frame."""
     from pipeline.vision.detection.crowding import flanked, ring_spread, split_centroids
     from pipeline.vision.detection.pair_profiles import compile_pair_pins
+    from pipeline.vision.detection.rejection import _local_scale, _ring_background
 
     compile_pair_pins()
     grey = np.full((24, 32), 20, np.uint8)
@@ -88,3 +90,8 @@ def compile_crowded_kernels() -> None:
     ring_spread(xy, radius, np.zeros((3, 8)), every, every)
     flanked(xy, radius, every, every)
     split_centroids(grey, xy, radius, every, every, DetectionParams())
+    _ring_background(grey, xy, radius)
+    spacing_suppress(xy, np.ones(3), 0.5)
+    cand = np.zeros((8, 3))
+    cand[:, 0] = np.arange(8.0)
+    _local_scale(cand, np.ones(8, bool), np.ones(8, bool))

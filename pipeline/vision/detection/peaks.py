@@ -9,6 +9,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipeline.vision.detection.sweep import by_x, x_range
 from pipeline.vision.detection.candidates import (COLUMNS, ELONGATION, MEASURE_SIGMA, MEASURE_STEPS_PER_OCTAVE,
                                                   RADIUS_PER_SIGMA, RESPONSE, SIGMA, X, Y)
 
@@ -194,18 +195,24 @@ def _suppress_kernel(cand, min_sep, sibling_ratio, sibling_separation, sibling_r
     return keep
 
 
-def spacing_suppress(xy: np.ndarray, response: np.ndarray, fraction: float) -> np.ndarray:
-    """Keep mask: of two centres closer than ``fraction`` x the median nearest-neighbour spacing the
-    weaker response is dropped (strongest first, so a dropped centre never removes another)."""
-    tree = cKDTree(xy)
-    d, _ = tree.query(xy, k=2)
-    radius = fraction * float(np.median(d[:, 1]))
-    keep = np.ones(len(xy), bool)
-    for i in np.argsort(-response, kind="stable"):
+@numba.njit(cache=True, nogil=True)
+def _spacing_kernel(xy, strongest_first, order, xs, radius):
+    keep = np.ones(len(xy), np.bool_)
+    for i in strongest_first:
         if not keep[i]:
             continue
-        for j in tree.query_ball_point(xy[i], radius):
-            if j != i and keep[j] and np.hypot(*(xy[j] - xy[i])) < radius:
+        lo, hi = x_range(xs, xy[i, 0], radius)
+        for k in range(lo, hi):
+            j = order[k]
+            if j != i and keep[j] and math.hypot(xy[j, 0] - xy[i, 0], xy[j, 1] - xy[i, 1]) < radius:
                 keep[j] = False
     return keep
 
+
+def spacing_suppress(xy: np.ndarray, response: np.ndarray, fraction: float) -> np.ndarray:
+    """Keep mask: of two centres closer than ``fraction`` x the median nearest-neighbour spacing the
+    weaker response is dropped (strongest first, so a dropped centre never removes another)."""
+    d, _ = cKDTree(xy).query(xy, k=2)
+    radius = fraction * float(np.median(d[:, 1]))
+    xy = np.ascontiguousarray(xy, np.float64)
+    return _spacing_kernel(xy, np.argsort(-response, kind="stable"), *by_x(xy), radius)

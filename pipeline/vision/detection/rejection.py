@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.vision.detection.candidates import ELONGATION, MEASURE_SIGMA, RADIUS_PER_SIGMA, SIGMA
 from pipeline.vision.detection.crowding import flanked, ring_spread, split_centroids
-from pipeline.vision.detection.numpy_order import median as _median
+from pipeline.vision.detection.numpy_order import median
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import suppress
 from pipeline.vision.detection.scale_space import scale_below_lowest
@@ -37,7 +38,7 @@ def _inside_hull(xy: np.ndarray, ref: np.ndarray) -> np.ndarray:
     nearest-neighbour spacing of ``ref`` away from its centroid (an outer-ring marker that failed the
     strict tests sits on the hull's edge, not inside it). False everywhere for < 3 points or a
     degenerate hull."""
-    from scipy.spatial import Delaunay, QhullError
+    from scipy.spatial import ConvexHull, QhullError
 
     if len(ref) < 3:
         return np.zeros(len(xy), bool)
@@ -46,22 +47,40 @@ def _inside_hull(xy: np.ndarray, ref: np.ndarray) -> np.ndarray:
     r = np.maximum(np.hypot(*(ref - c).T), 1e-9)[:, None]
     grown = c + (ref - c) * (1.0 + 0.5 * spacing / r)
     try:
-        return Delaunay(grown).find_simplex(xy) >= 0
+        eq = ConvexHull(grown).equations           # outward normals n and offsets: inside where n.x + b <= 0
     except QhullError:
         return np.zeros(len(xy), bool)
+    return np.all(xy @ eq[:, :2].T + eq[:, 2] <= 0.0, axis=1)
 
 
 def _ring_background(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray) -> np.ndarray:
     """Median of the background ring (as the photometry's: ``RING_IN r + RING_GAP_PX .. RING_IN r + RING_WIDTH_PX`` px about the
     rounded centre) per centre, on the [0, 1] scale; NaN where the ring is wholly outside the image."""
+    out = np.full(len(xy), np.nan)
+    defaults = DetectionParams()
+    grey = np.ascontiguousarray(grey)
+    for r in np.unique(radius):                     # the measuring scales: a few radii a view
+        sel = np.flatnonzero(radius == r)
+        dx, dy = group_offsets(float(r), defaults)[:2]
+        out[sel] = _ring_medians(grey, np.ascontiguousarray(xy[sel], np.float64), dx, dy)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _ring_medians(grey, xy, dx, dy):
     h, w = grey.shape
     out = np.full(len(xy), np.nan)
-    for i, ((u, v), r) in enumerate(zip(xy, radius)):
-        dx, dy = group_offsets(float(r), DetectionParams())[:2]
-        x, y = int(np.rint(u)) + dx, int(np.rint(v)) + dy
-        ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        if ok.any():
-            out[i] = float(np.median(grey[y[ok], x[ok]])) / 255.0
+    vals = np.empty(len(dx))
+    for i in range(len(xy)):
+        cx, cy = int(np.rint(xy[i, 0])), int(np.rint(xy[i, 1]))
+        m = 0
+        for k in range(len(dx)):
+            x, y = cx + dx[k], cy + dy[k]
+            if 0 <= x < w and 0 <= y < h:
+                vals[m] = grey[y, x]
+                m += 1
+        if m > 0:
+            out[i] = median(vals[:m]) / 255.0
     return out
 
 
@@ -107,11 +126,23 @@ def _local_scale(cand: np.ndarray, typical: np.ndarray, which: np.ndarray) -> np
         return out
     xy = cand[:, :2]
     _, j = cKDTree(xy[ref]).query(xy[which], k=LOCAL_SIZE_NEIGHBOURS + 1)
-    idx = np.flatnonzero(which)
-    for r, (i, row) in enumerate(zip(idx, j)):
-        nb = ref[row]
-        nb = nb[nb != i][:LOCAL_SIZE_NEIGHBOURS]
-        out[r] = _median(cand[nb, SIGMA])
+    return _local_medians(ref, j, np.flatnonzero(which), np.ascontiguousarray(cand[:, SIGMA]), LOCAL_SIZE_NEIGHBOURS)
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_medians(ref, j, idx, sigma, k):
+    """Per row of ``j`` (indices into ``ref``, nearest first): the median scale of the first ``k`` that are not
+    the candidate ``idx[r]`` itself."""
+    out = np.empty(len(idx))
+    vals = np.empty(k)
+    for r in range(len(idx)):
+        m = 0
+        for c in range(j.shape[1]):
+            nb = ref[j[r, c]]
+            if nb != idx[r] and m < k:
+                vals[m] = sigma[nb]
+                m += 1
+        out[r] = median(vals[:m])
     return out
 
 
@@ -139,7 +170,7 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
     # neighbours reads smaller: down to 1/ratio**2), and saturation where markers are not saturated
     # (LED glare is; exposure-clipped markers all are)
     typical = keep & isolated & ~debris
-    med = float(_median(cand[typical, SIGMA]))
+    med = float(median(cand[typical, SIGMA]))
     big_ok = cand[:, SIGMA] <= params.max_size_ratio * med
     small = cand[:, SIGMA] < med / params.max_size_ratio
     if small.any():
@@ -180,6 +211,6 @@ def screen(grey: np.ndarray, cand: np.ndarray, measured: Measurements, debris: n
         keep[idx[~(bg <= params.max_background_ratio * contrast[idx])]] = False
     # (debris touching a marker is excluded from its centroid as a touching marker is)
     xy = split_centroids(grey, xy, radius, keep & crowded, (keep & big_ok) | (peers & debris), params)
-    if _median(core_sat[keep]) < _CLIPPED_CORE_SATURATION:
+    if median(core_sat[keep]) < _CLIPPED_CORE_SATURATION:
         keep &= core_sat <= _MAX_GLARE_CORE_SATURATION
     return keep, xy
