@@ -41,9 +41,11 @@ def _real_frames_row(acc: Mapping[str, Any]) -> tuple[str, str, str, str]:
     closest = min((r["closest_over_median"] for r in rows), default=None)
     lo, hi = int(_metric(acc, "real_found_min")), int(_metric(acc, "real_found_max"))
     found = f"{lo} on every one of the {int(n)} frames" if lo == hi else f"{lo}–{hi} on {int(n)} frames"
+    med, p95 = _metric(acc, "real_detect_ms_median"), _metric(acc, "real_detect_ms_p95")
+    timing = "" if med is None else f"; detection {_fmt(med)} ms a view (median; p95 {_fmt(p95)}; one thread)"
     return (what, f"{found}; closest two centres {_fmt(closest)} of the median separation; "
-            f"{int(_metric(acc, 'real_in_glare'))} inside saturated LED glare", "331 — " + _verdict_met(lo == hi == 331),
-            how)
+            f"{int(_metric(acc, 'real_in_glare'))} inside saturated LED glare{timing}",
+            "331 — " + _verdict_met(lo == hi == 331), how)
 
 
 def _latency_row(lat: Mapping[str, Any]) -> tuple[str, str, str, str]:

@@ -13,7 +13,9 @@ Each part measures one stage where the answer is known exactly:
   (thin markers, rest and displaced), and per-vertex refraction against a per-pixel ray tracer
   (:mod:`twin.render.reference`);
 * **real frames** (only with ``--param real_frames=DIR``) — the monocular dome parameters on real TacTip frames:
-  pins found per frame, the closest two centres, detections inside saturated LED glare.
+  pins found per frame, the closest two centres, detections inside saturated LED glare, and the time detection
+  takes a view (one thread, after a warm-up frame: a real frame's crowded and elongated pins reach screens the
+  analytic frames of ``bench latency`` do not).
 
 The README's Pipeline and renderer tables are written from this record (``report DIR --block
 pipeline-accuracy`` / ``renderer-accuracy``); ``tests/test_detection.py``, ``test_runner.py``,
@@ -21,6 +23,8 @@ pipeline-accuracy`` / ``renderer-accuracy``); ``tests/test_detection.py``, ``tes
 """
 
 from __future__ import annotations
+
+import time
 
 from pathlib import Path
 
@@ -187,22 +191,28 @@ def real_frame_rows(folder: Path) -> list[dict]:
     from scipy.spatial import cKDTree
 
     from pipeline.errors import UserError
+    from pipeline.threads import one_thread
     from pipeline.vision.detection import MONOCULAR_DOME, detect_markers
 
     paths = sorted(Path(folder).glob("*.png"))
     if not paths:
         raise UserError(f"--param real_frames={folder}: no PNG frames there")
     rows = []
-    for path in paths:
+    for k, path in enumerate(paths):
         img = cv2.imread(str(path))
         if img is None:
             raise UserError(f"{path}: not a readable image")
-        blobs = detect_markers(img, params=MONOCULAR_DOME)
+        with one_thread():           # as the runner detects: one thread for OpenCV and BLAS
+            if k == 0:
+                detect_markers(img, params=MONOCULAR_DOME)      # warm-up: buffers, first calls
+            t0 = time.perf_counter()
+            blobs = detect_markers(img, params=MONOCULAR_DOME)
+            ms = (time.perf_counter() - t0) * 1e3
         d = cKDTree(blobs.xy_px).query(blobs.xy_px, k=2)[0][:, 1]
         ij = np.rint(blobs.xy_px).astype(int)
         glare = glare_mask(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
         rows.append({"frame": path.name, "found": len(blobs), "closest_over_median": float(d.min() / np.median(d)),
-                     "in_glare": int(glare[ij[:, 1], ij[:, 0]].sum())})
+                     "in_glare": int(glare[ij[:, 1], ij[:, 0]].sum()), "detect_ms": ms})
     return rows
 
 
@@ -225,6 +235,8 @@ def real_frame_rows(folder: Path) -> list[dict]:
         "real_found_min": "1",
         "real_found_max": "1",
         "real_in_glare": "1",
+        "real_detect_ms_median": "ms",
+        "real_detect_ms_p95": "ms",
     },
     requires=("pipeline.runner", "pipeline.vision.detection", "pipeline.geometry.refraction", "twin.render"),
 )
@@ -272,6 +284,8 @@ def run(ctx: Context) -> Result:
         out.metric("real_found_min", min(r["found"] for r in real), "1")
         out.metric("real_found_max", max(r["found"] for r in real), "1")
         out.metric("real_in_glare", sum(r["in_glare"] for r in real), "1")
+        out.metric("real_detect_ms_median", float(np.median([r["detect_ms"] for r in real])), "ms")
+        out.metric("real_detect_ms_p95", float(np.percentile([r["detect_ms"] for r in real], 95)), "ms")
         out.notes.append(f"Real frames: {len(real)} PNG frames of {folder} with the monocular dome parameters "
                          "(pipeline.vision.detection.MONOCULAR_DOME).")
     else:
