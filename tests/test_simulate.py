@@ -107,7 +107,8 @@ def test_cli_errors(tmp_path, capsys, argv, msg):
 def test_cli_simulate_writes_frames_truth_calibration(tmp_path, monkeypatch):
     monkeypatch.setenv("PYOPENGL_PLATFORM", "egl")
     out = tmp_path / "run"
-    argv = ["simulate", "--design", "hexagon127", "--indenter", "gaussian", "--param", "sigma2=50", "--depth", "1"]
+    argv = ["simulate", "--design", "hexagon127", "--indenter", "gaussian", "--param", "sigma2=50", "--depth", "1",
+            "--mesh", "default"]
     rc = main([*argv, "--out", str(out)])
     validity = json.loads((out / "meta.json").read_text())["validity"][0]
     # frames failing the twin's physics checks are written but flagged: exit 3 unless --allow-invalid
@@ -122,21 +123,23 @@ def test_cli_simulate_writes_frames_truth_calibration(tmp_path, monkeypatch):
     assert t.robot_pose[2] == -1.0
     meta = json.loads((out / "meta.json").read_text())
     assert meta["indenter"] == "gaussian" and meta["params"]["sigma2_mm2"] == 50.0 and "settle" in meta
+    assert meta["mesh_choice"] == "default"
     assert (out / "calib.yaml").is_file() and (out / "preview.png").is_file()
 
 
 @pytest.mark.physics
 @pytest.mark.render
 @pytest.mark.slow
-def test_cli_simulate_on_the_axis_mesh_gives_a_valid_gaussian_press(tmp_path, monkeypatch):
-    """The default mesh leaves a sigma^2 = 10 press flagged (faces 0.16-0.29 mm inside the indenter); the
-    axis contact mesh keeps it within the 0.05 mm bound, so simulate exits 0 without --allow-invalid."""
+def test_cli_simulate_by_default_presses_a_gaussian_on_the_axis_mesh_and_gives_a_valid_press(tmp_path, monkeypatch):
+    """The 1.5 mm default mesh leaves a sigma^2 = 10 press flagged (faces 0.16-0.29 mm inside the indenter); without
+    --mesh, simulate picks the axis contact mesh for a Gaussian on the axis (--mesh auto), which keeps it within the
+    0.05 mm bound, so it exits 0 without --allow-invalid."""
     monkeypatch.setenv("PYOPENGL_PLATFORM", "egl")
     out = tmp_path / "run"
     rc = main(["simulate", "--design", "hexagon127", "--indenter", "gaussian", "--param", "sigma2=10",
-               "--depth", "3", "--mesh", "axis", "--out", str(out)])
+               "--depth", "3", "--out", str(out)])
     meta = json.loads((out / "meta.json").read_text())
-    assert meta["mesh_choice"] == "axis"
+    assert meta["mesh_choice"] == "auto: axis"
     v = meta["validity"][-1]
     assert rc == 0 and v["valid"] and v["penetration_max_mm"] <= 0.05, v
 
@@ -157,3 +160,16 @@ def test_cli_simulate_presses_the_sine_experiments_plate_on_its_mesh(tmp_path, m
     assert meta["mesh_choice"] == "sine"
     v = meta["validity"][-1]
     assert rc == 0 and v["valid"] and v["penetration_max_mm"] <= 0.05 and v["rim_overlap_mm"] <= 1e-6, v
+
+
+def test_simulate_picks_the_mesh_the_experiments_press_each_indenter_on():
+    """--mesh auto: the axis contact mesh for a Gaussian or sphere pressed on the axis (the Gaussian experiment's),
+    the sine contact mesh for a sine plate (the sine experiment's), face contact on the default mesh for letters,
+    terrain patches and any motion that leaves the axis (the tracking experiment's and the terrain taps')."""
+    from twin.mesh import AXIS_CONTACT_MESH, NAMED_MESHES, SINE_CONTACT_MESH, MeshSpec, auto_mesh
+
+    assert [auto_mesh(n) for n in ("gaussian", "sphere", "sine", "letter", "terrain", "flat")] == \
+        ["axis", "axis", "sine", "face", "face", "face"]
+    assert auto_mesh("gaussian", "tracking-G") == "face"
+    assert (NAMED_MESHES["axis"], NAMED_MESHES["sine"], NAMED_MESHES["face"]) == \
+        (AXIS_CONTACT_MESH, SINE_CONTACT_MESH, MeshSpec(face_contact=True))

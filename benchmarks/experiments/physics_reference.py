@@ -10,7 +10,7 @@ averaged nodal volumes (``MeshSpec(volumetric="nodal")``, :mod:`twin.volumetric`
 reference the production mesh's markers are measured against; its own differences say how well the reference
 itself is converged.
 
-The meshes the twin presses the experiments on (``simulate --mesh default|axis|sine``, ``twin.mesh.NAMED_MESHES``; :data:`OFFERED_MESHES`) are
+The meshes the twin presses the experiments on (``simulate --mesh default|axis|sine``, ``twin.mesh.NAMED_MESHES``; ``face`` has the default's cells; :data:`OFFERED_MESHES`) are
 measured against the same finest member (:func:`offered_meshes`): the error a user inherits from the mesh they pick.
 """
 
