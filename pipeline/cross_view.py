@@ -79,7 +79,7 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
     if lc.ids.size == 0 or rc.ids.size == 0:
         return codings
     lat = lattice_of(design)
-    todo = [np.setdiff1d(b.ids[b.ids >= 0], a.ids[a.ids >= 0]) for a, b in ((lc, rc), (rc, lc))]
+    todo = [_only_in(b.ids, a.ids, len(lat.xy)) for a, b in ((lc, rc), (rc, lc))]
     if not any(len(w) and (a.ids < 0).any() for w, a in zip(todo, (lc, rc))):
         return codings
     both = np.intersect1d(lc.ids[lc.ids >= 0], rc.ids[rc.ids >= 0])
@@ -92,6 +92,15 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
     left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, before, locate)
     right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, before, locate)
     return (left, lrest), (right, rrest)
+
+
+def _only_in(ids: np.ndarray, other: np.ndarray, n: int) -> np.ndarray:
+    """The ids (>= 0, < n) in ``ids`` and not in ``other``, sorted: ``np.setdiff1d`` of the identified ids by a mask
+    over the design's n ids (a tenth of its cost, on every frame)."""
+    has = np.zeros(n, bool)
+    has[ids[ids >= 0]] = True
+    has[other[other >= 0]] = False
+    return np.flatnonzero(has)
 
 
 def _index(ids: np.ndarray) -> np.ndarray:

@@ -19,8 +19,7 @@ from pipeline.geometry.refraction import RefractionError, correct_exact, correct
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
 from pipeline.threads import VIEW_THREADS, ViewPolicy, both_views, default_view_threads, one_thread
 from pipeline.geometry.triangulation import matched_rays, triangulate
-from pipeline.types import (Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration,
-                            StereoFrame)
+from pipeline.types import Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration, StereoFrame
 
 __all__ = ["Reconstructor", "FrameResult", "compile_kernels", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
 
@@ -33,9 +32,8 @@ STEREO_GATE_MM = 0.15
 #: ... and the triangulated marker lies in the gel: between the gel/acrylic interface and this far
 #: (mm) beyond its rest depth (the skin bulges outward only slightly beside an indentation).
 STEREO_BULGE_MM = 1.0
-#: A first frame read from the rest pattern (see :class:`pipeline.vision.dtrc.DTRCTracker`) keeps no
-#: pair when the stereo check rejects more than this fraction of its pairs (a right calibration's
-#: rest pattern leaves none rejected on the twin's frames).
+#: A first frame read from the rest pattern (see :class:`pipeline.vision.dtrc.DTRCTracker`) keeps no pair when the
+#: stereo check rejects more than this fraction (a right calibration's rest pattern leaves none on the twin's frames).
 REST_DOUBT = 0.1
 
 
@@ -226,6 +224,8 @@ class Reconstructor:
                    f"{len(ok)} pairs: the calibration does not place the markers where they are")
             self._stereo_reasons = {int(i): why for i in cloud.ids.tolist()}
             ok[:] = False
+        if ok.all() and len(cloud.ids) == len(matches.ids):      # every pair kept: the cloud has one point per pair
+            return matches, np.empty(0, np.int64), cloud, rays
         kept_cloud = cloud if ok.all() else MarkerCloud(cloud.ids[ok], cloud.xyz_mm[ok])
         good = np.isin(matches.ids, kept_cloud.ids)
         if good.all():
