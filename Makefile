@@ -42,12 +42,16 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/stereotactip demo --out $(OUT)
 
+# the test files spread over every core (pytest-xdist; a file's tests stay together, so a module's fixtures are
+# built once); each physics press is single-threaded
+PYTEST := $(BIN)/python -m pytest -q -n auto --dist loadfile
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(PYTEST)
 	$(BIN)/stereotactip bench all --quick --check --calibration estimated --out results/ci-quick
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 bench: $(STAMP)
 	$(BIN)/stereotactip bench all --out results/full
