@@ -4,7 +4,7 @@ centroids with a touching neighbour's light left out. Used by :func:`pipeline.vi
 Each is one compiled pass over the candidates it examines (pins crowd under a steep flank; on a real TacTip view
 ~15-30 candidates touch a neighbour). The arithmetic is the numpy code's these replaced, in its order (sums
 pairwise, :mod:`pipeline.vision.detection.numpy_order`; the median as ``np.median``), so the same blobs come out
-bit for bit (tests/test_pair_profiles.py compares them on real and twin frames).
+bit for bit (tests/test_detection_kernels.py compares them on real and twin frames).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """numpy's float arithmetic order in compiled kernels: float ranges as ``np.arange`` fills them and sums in the
 pairwise order of ``ndarray.sum``, so that a kernel replacing numpy code gives its numbers bit for bit (detection
 compares floats against thresholds: a last-bit difference can move a blob). Tested against numpy in
-tests/test_pair_profiles.py."""
+tests/test_detection_kernels.py."""
 
 from __future__ import annotations
 

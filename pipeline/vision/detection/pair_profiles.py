@@ -5,7 +5,7 @@ ones).
 One pass over every examined blob of a view. The arithmetic is numpy's, step for step: float ranges and sums
 in numpy's order (:mod:`pipeline.vision.detection.numpy_order`), the median of three chords as
 ``scipy.ndimage.median_filter(size=3, mode="nearest")``, so a view's blobs come out as they did when each test
-was written in numpy (tests/test_pair_profiles.py compares them). On a real TacTip view (~15 blobs profiled) the
+was written in numpy (tests/test_detection_kernels.py compares them). On a real TacTip view (~15 blobs profiled) the
 numpy version took 3.4-3.8 ms, most of it per-call overhead on windows of ~150 pixels.
 """
 
