@@ -77,16 +77,46 @@ def _busy_processes(n: int) -> list:
     return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
 
 
+def _with_defects(frame, design, calib, xyz: np.ndarray, rate: float, rng: np.random.Generator):
+    """``frame`` with, in each view, ``rate`` of the markers hidden (painted over with the background) and as
+    many spurious bright discs (a third of a separation across, at least 0.7 separations from every marker)
+    placed over the pattern: the blobs a real view loses to glare and dust and gains from reflections."""
+    import cv2
+
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import BACKGROUND_GREY, MARKER_GREY
+    from pipeline.types import StereoFrame
+
+    n = int(round(rate * len(xyz)))
+    views = [frame.left.copy(), frame.right.copy()]
+    for view, px in zip(views, project_through_stack(xyz, calib, design)):
+        sep = float(np.median(np.sort(np.hypot(*(px[:, None] - px[None]).transpose(2, 0, 1)), axis=1)[:, 1]))
+        for i in rng.choice(len(px), n, replace=False):
+            cv2.circle(view, (int(round(px[i, 0])), int(round(px[i, 1]))), int(round(0.45 * sep)), BACKGROUND_GREY, -1)
+        lo, hi, added = px.min(axis=0), px.max(axis=0), 0
+        while added < n:
+            q = rng.uniform(lo, hi)
+            if np.hypot(*(px - q).T).min() > 0.7 * sep:
+                cv2.circle(view, (int(round(q[0])), int(round(q[1]))), max(1, int(round(sep / 6))), MARKER_GREY, -1,
+                           cv2.LINE_AA)
+                added += 1
+    return StereoFrame.from_pair(views[0], views[1], index=frame.index, timestamp_s=frame.timestamp_s,
+                                 source="synthetic")
+
+
 def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generator, n_distinct_frames: int,
-                 progress: bool, view_threads: int | None = None) -> dict:
+                 progress: bool, view_threads: int | None = None, defects: float = 0.0) -> dict:
     """One design's timing in :func:`run_latency`: ``n_frames`` synthetic press frames through a fresh
     runner, each preceded by the reference job, after one warm-up frame."""
     from tqdm import tqdm
 
     calib = nominal_calibration(design)
     depths = np.linspace(0.0, 3.0, n_distinct_frames)
-    frames = [synth_stereo_frame(design, calib, gaussian_press_markers(design, float(d), sigma_mm=4.0),
-                                 rng=rng, index=k) for k, d in enumerate(depths)]
+    frames = []
+    for k, d in enumerate(depths):
+        xyz = gaussian_press_markers(design, float(d), sigma_mm=4.0)
+        frame = synth_stereo_frame(design, calib, xyz, rng=rng, index=k)
+        frames.append(_with_defects(frame, design, calib, xyz, defects, rng) if defects > 0 else frame)
     rec = Reconstructor(design, calib, refraction=refraction, view_threads=view_threads)
     stages: dict[str, list[float]] = {}
     matched = []
@@ -111,7 +141,7 @@ def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generato
 def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome"), n_frames: int = 200,
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
                 n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0,
-                nice: int | None = None, view_threads: int | None = None) -> dict:
+                nice: int | None = None, view_threads: int | None = None, defects: float = 0.0) -> dict:
     """Time the whole runner per stage on synthetic frames (the runner holds BLAS, OpenMP and
     OpenCV at one thread per frame: :mod:`pipeline.threads`).
 
@@ -126,6 +156,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     nice : the frames are processed at this niceness (:func:`pipeline.priority.frame_priority`; None: the
         process's own); the spinning processes keep theirs
     view_threads : 1 or 2 (the runner's ``view_threads``; None: its default, 2 on two or more CPUs)
+    defects : fraction of the markers hidden, and as many spurious blobs added, in each view of each frame
+        (:func:`_with_defects`; 0 = clean frames)
 
     Returns
     -------
@@ -137,7 +169,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     rng = np.random.default_rng(seed)
     result: dict = {"paper_ms": PAPER_LATENCY_MS, "goal_median_ms": GOAL_MEDIAN_MS, "n_frames": n_frames,
                     "refraction": refraction, "seed": seed, "opencv_threads": 1,
-                    "background_procs": int(background_procs),
+                    "background_procs": int(background_procs), "defects": float(defects),
                     "view_threads": default_view_threads() if view_threads is None else int(view_threads),
                     "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                                 "cpu_count": os.cpu_count(), "opencv": cv2.__version__, "numpy": np.__version__},
@@ -148,7 +180,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
             result["niceness"] = niceness
             for name in design_names:
                 result["designs"][name] = _time_design(load_design(name), n_frames, refraction, rng,
-                                                       n_distinct_frames, progress, view_threads)
+                                                       n_distinct_frames, progress, view_threads, float(defects))
     finally:
         cv2.setNumThreads(threads)
         for proc in load:
