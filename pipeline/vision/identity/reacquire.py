@@ -77,7 +77,7 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
         return out
     pts = np.ascontiguousarray(pts, dtype=np.float64)
     tree = cKDTree(pts)
-    s_cur = _nn_dist(tree, pts)
+    s_cur = _nn_dist(pts)
     top = int(max(ids.max(), max((int(h[1].max(initial=-1)) for h in history), default=-1))) + 1
     blob_of = np.full(top, -1, np.int64)
     blob_of[ids[have]] = np.flatnonzero(have)
@@ -151,7 +151,7 @@ def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
     idx = np.flatnonzero(ok)
     d, j = tree.query(pred[idx], k=2)
     others = np.vstack([pred[idx], pts[taken], rivals])
-    s_pred = np.minimum(s_prev[idx], _nn_dist(cKDTree(others), others)[:len(idx)])
+    s_pred = np.minimum(s_prev[idx], _nn_dist(others)[:len(idx)])
     s = np.minimum(s_cur[j[:, 0]], s_pred)
     good = (~taken[j[:, 0]] & (d[:, 0] <= gate[idx] * s) & (d[:, 1] >= F2F_RATIO * d[:, 0])
             & (d[:, 1] - d[:, 0] >= F2F_MARGIN * s))
@@ -201,7 +201,7 @@ def carry_lost(prev: tuple, cur: tuple, design_xy: np.ndarray, design_nbr: np.nd
         at[prev_ids[moved]] = pred[moved]
     pos = np.full((n_slots, 2), np.nan)
     pos[cur_ids] = cur_xy
-    s_cur = _nn_dist(cKDTree(cur_xy), cur_xy)
+    s_cur = _nn_dist(cur_xy)
     spacing = float(np.median(s_cur))
     for i in np.flatnonzero(~certified & ~np.isfinite(at[:, 0])):
         nb = design_nbr[i][design_nbr[i] >= 0]

@@ -45,6 +45,9 @@ last certified position and its neighbours' motion since then.
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -128,9 +131,38 @@ F2F_DESIGN_REACH = 2.5
 F2F_ROUNDS = 24
 
 
-def _nn_dist(tree: cKDTree, xy: np.ndarray) -> np.ndarray:
-    d = tree.query(xy, k=2)[0][:, 1]
-    return np.where(np.isfinite(d), d, np.inf)
+def _nn_dist(xy: np.ndarray) -> np.ndarray:
+    """Each point's distance to its nearest other point (inf for a single point): what ``cKDTree(xy).query(xy,
+    k=2)`` gives, value for value (the square root of dx² + dy², its arithmetic), by a compiled sweep in x
+    (8 us for 217 points against ~90 us for building and querying the tree, several times a frame)."""
+    return _nn_dist_kernel(np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
+
+
+@numba.njit(cache=True, nogil=True)
+def _nn_dist_kernel(xy):
+    n = len(xy)
+    out = np.full(n, np.inf)
+    if n < 2:
+        return out
+    order = np.argsort(xy[:, 0], kind="mergesort")
+    xs = xy[order, 0]
+    for a in range(n):
+        i = order[a]
+        best2 = np.inf
+        for step in (-1, 1):
+            b = a + step
+            while 0 <= b < n:
+                dx = xs[b] - xy[i, 0]
+                if dx * dx > best2:
+                    break
+                j = order[b]
+                dy = xy[j, 1] - xy[i, 1]
+                d2 = dx * dx + dy * dy
+                if d2 < best2:
+                    best2 = d2
+                b += step
+        out[i] = math.sqrt(best2)
+    return out
 
 
 def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, ids_before: np.ndarray) -> np.ndarray:
@@ -152,7 +184,7 @@ def _neighbourhoods(P: np.ndarray):
     local spacing: the marker's nearest-neighbour distance or its neighbours' median, the smaller)."""
     m = len(P)
     ptree = cKDTree(P)
-    s_prev = _nn_dist(ptree, P)
+    s_prev = _nn_dist(P)
     k = min(F2F_NEIGHBOURS, m - 1)
     dn, nb = ptree.query(P, k=k + 1)
     dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
@@ -208,11 +240,33 @@ def _fit_nearest(P, pts, corr, s_prev, B, which, space, reach):
 
 
 def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.ndarray:
-    """Row-wise median of ``v`` over ``mask`` (``default`` for rows without any)."""
-    w = np.where(mask, v, np.nan)
+    """Row-wise median of ``v`` over ``mask`` (``default`` for rows without any): ``np.nanmedian`` of the row with
+    the unmasked entries NaN, value for value (the middle one, or the two middle ones' sum halved; NaN entries
+    ignored), compiled: numpy takes the masked-array path for rows this short (~0.5 ms a call)."""
+    return _median_where_kernel(np.ascontiguousarray(v, np.float64), np.ascontiguousarray(mask, np.bool_),
+                                np.asarray(default, np.float64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _median_where_kernel(v, mask, default):
     out = default.copy()
-    has = mask.any(axis=1)
-    out[has] = np.nanmedian(w[has], axis=1)
+    vals = np.empty(v.shape[1])
+    for i in range(v.shape[0]):
+        m, any_mask = 0, False
+        for j in range(v.shape[1]):
+            if mask[i, j]:
+                any_mask = True
+                if not np.isnan(v[i, j]):
+                    vals[m] = v[i, j]
+                    m += 1
+        if not any_mask:
+            continue
+        if m == 0:
+            out[i] = np.nan
+            continue
+        s = np.sort(vals[:m])
+        h = m // 2
+        out[i] = s[h] if m % 2 == 1 else (s[h - 1] + s[h]) / 2.0
     return out
 
 
@@ -282,7 +336,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     P = np.ascontiguousarray(prev_xy, dtype=np.float64)
     pts = np.ascontiguousarray(pts, dtype=np.float64)
     tree = cKDTree(pts)
-    s_cur = _nn_dist(tree, pts)
+    s_cur = _nn_dist(pts)
     nb, near, shell, s_prev = _neighbourhoods(P)
 
     gate = np.full(m, F2F_GATE)
@@ -297,7 +351,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
     design = None
     if design_xy is not None and len(design_xy) > 1:
         if design_pitch is None:
-            design_pitch = float(np.median(_nn_dist(cKDTree(design_xy), design_xy)))
+            design_pitch = float(np.median(_nn_dist(design_xy)))
         design = (np.asarray(design_xy, np.float64)[prev_ids], design_pitch)
 
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
@@ -325,7 +379,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
             pred = np.where(okv[:, None], pv, pred)
             ok = ok | okv
         # where the skin crowds in this very frame, the predictions crowd with it
-        s_pred = np.minimum(s_prev, _nn_dist(cKDTree(pred), pred))
+        s_pred = np.minimum(s_prev, _nn_dist(pred))
         new = _accept(pred, ok, tree, pts, s_cur, s_pred, g)
         if np.array_equal(new, corr):
             break
