@@ -157,7 +157,22 @@ def calibrate_stereo(pairs: Iterable, *, board_squares: tuple[int, int] = (9, 7)
     CalibrationError
         Fewer than :data:`MIN_PAIRS` pairs show the whole board in both views (the message names the
         skipped pairs), or images of different sizes.
+
+    Notes
+    -----
+    Runs with OpenCV (and BLAS) at one thread (:func:`pipeline.threads.one_thread`): with OpenCV's thread pool the
+    same 20 chessboard pairs calibrated to an RMS and focal lengths that differed from run to run in the tenth to
+    eighth significant digit (measured on the twin's renders), enough to move benchmark figures downstream; at one
+    thread every run gives the same numbers.
     """
+    from pipeline.threads import one_thread
+
+    with one_thread():
+        return _calibrate_stereo(pairs, board_squares, square_mm, sensor_from_left)
+
+
+def _calibrate_stereo(pairs: Iterable, board_squares: tuple[int, int], square_mm: float,
+                      sensor_from_left: np.ndarray | None) -> tuple[StereoCalibration, CalibrationReport]:
     if not square_mm > 0:
         raise CalibrationError(f"square_mm must be > 0, got {square_mm}")
     obj = board_points_mm(board_squares, square_mm).astype(np.float32)
