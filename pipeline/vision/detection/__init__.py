@@ -34,7 +34,6 @@ Modules, in the order a frame goes through them:
 - :mod:`.pairs` -- two touching or overlapping pins found as one blob split back into two, with
   :mod:`.pair_profiles` (the profiles of each examined blob);
 - :mod:`.numpy_order` -- numpy's float ranges, sums and median in the compiled kernels, bit for bit;
-- :mod:`.sweep` -- neighbours within reach by an x-ordered sweep (inside the compiled loops);
 - :mod:`.detect` -- :func:`detect_markers`, the steps chained; :func:`compile_crowded_kernels`.
 
 References

@@ -17,7 +17,7 @@ import numpy as np
 from pipeline.vision.detection.images import U8_SCALE
 from pipeline.vision.detection.numpy_order import float_sum, median
 from pipeline.vision.detection.params import DetectionParams
-from pipeline.vision.detection.sweep import by_x, x_range
+from pipeline.vision.nearest import x_order, x_range
 from pipeline.vision.detection.photometry import RING_IN, RING_WIDTH_PX, RUNAWAY_FRACTION, RUNAWAY_PX, SECTORS, \
     WINDOW_MARGIN_PX
 
@@ -98,7 +98,7 @@ def ring_spread(xy: np.ndarray, radius: np.ndarray, sectors: np.ndarray, peers: 
     xy = np.ascontiguousarray(xy, np.float64)
     radius = np.ascontiguousarray(radius, np.float64)
     return _ring_spread_kernel(xy, radius, np.ascontiguousarray(sectors, np.float64), spread,
-                               RING_IN * radius + RING_WIDTH_PX, *by_x(xy, peers), float(radius.max()),
+                               RING_IN * radius + RING_WIDTH_PX, *x_order(xy, peers), float(radius.max()),
                                np.flatnonzero(examine), _SECTOR_CENTRES, PEER_HALF_ANGLE_RAD)
 
 
@@ -127,7 +127,7 @@ def flanked(xy: np.ndarray, radius: np.ndarray, which: np.ndarray, peers: np.nda
         return np.zeros(len(xy), bool)
     xy = np.ascontiguousarray(xy, np.float64)
     radius = np.ascontiguousarray(radius, np.float64)
-    return _flanked_kernel(xy, radius, RING_IN * radius + RING_WIDTH_PX, *by_x(xy, peers), float(radius.max()),
+    return _flanked_kernel(xy, radius, RING_IN * radius + RING_WIDTH_PX, *x_order(xy, peers), float(radius.max()),
                            np.flatnonzero(which), FLANK_MIN_ANGLE_RAD)
 
 
@@ -203,5 +203,5 @@ def split_centroids(grey: np.ndarray, xy: np.ndarray, radius: np.ndarray, which:
         return xy.copy()
     xy = np.ascontiguousarray(xy, np.float64)
     return _split_kernel(np.ascontiguousarray(grey), xy, np.ascontiguousarray(radius, np.float64),
-                         np.flatnonzero(which), *by_x(xy, peers), float(params.centroid_radius_factor),
+                         np.flatnonzero(which), *x_order(xy, peers), float(params.centroid_radius_factor),
                          int(params.centroid_iterations), U8_SCALE)

@@ -7,9 +7,8 @@ import math
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
-from pipeline.vision.detection.sweep import by_x, x_range
+from pipeline.vision.nearest import nearest_other_distances, x_order, x_range
 from pipeline.vision.detection.candidates import (COLUMNS, ELONGATION, MEASURE_SIGMA, MEASURE_STEPS_PER_OCTAVE,
                                                   RADIUS_PER_SIGMA, RESPONSE, SIGMA, X, Y)
 
@@ -212,7 +211,6 @@ def _spacing_kernel(xy, strongest_first, order, xs, radius):
 def spacing_suppress(xy: np.ndarray, response: np.ndarray, fraction: float) -> np.ndarray:
     """Keep mask: of two centres closer than ``fraction`` x the median nearest-neighbour spacing the
     weaker response is dropped (strongest first, so a dropped centre never removes another)."""
-    d, _ = cKDTree(xy).query(xy, k=2)
-    radius = fraction * float(np.median(d[:, 1]))
     xy = np.ascontiguousarray(xy, np.float64)
-    return _spacing_kernel(xy, np.argsort(-response, kind="stable"), *by_x(xy), radius)
+    radius = fraction * float(np.median(nearest_other_distances(xy)))
+    return _spacing_kernel(xy, np.argsort(-response, kind="stable"), *x_order(xy), radius)

@@ -12,6 +12,7 @@ from pipeline.vision.detection.numpy_order import median
 from pipeline.vision.detection.params import DetectionParams
 from pipeline.vision.detection.peaks import suppress
 from pipeline.vision.detection.scale_space import scale_below_lowest
+from pipeline.vision.nearest import nearest_other_distances
 from pipeline.vision.detection.photometry import Measurements, group_offsets, refine_and_measure
 
 #: Floor (on the [0, 1] scale) of the contrast that scales the isolation limits, so that a candidate
@@ -42,7 +43,7 @@ def _inside_hull(xy: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
     if len(ref) < 3:
         return np.zeros(len(xy), bool)
-    spacing = float(np.median(cKDTree(ref).query(ref, k=2)[0][:, 1]))
+    spacing = float(np.median(nearest_other_distances(np.ascontiguousarray(ref, np.float64))))
     c = ref.mean(axis=0)
     r = np.maximum(np.hypot(*(ref - c).T), 1e-9)[:, None]
     grown = c + (ref - c) * (1.0 + 0.5 * spacing / r)

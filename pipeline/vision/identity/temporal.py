@@ -45,14 +45,13 @@ last certified position and its neighbours' motion since then.
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.apart import lost_neighbours_apart
 from pipeline.vision.identity.motion_fit import _predict
+from pipeline.vision.nearest import nearest_other_distances
 
 #: Gate about a marker's predicted position, as a fraction of the local spacing (the smallest of the
 #: nearest blob's nearest-neighbour distance now, the marker's and its neighbours' (median) in the
@@ -132,37 +131,9 @@ F2F_ROUNDS = 24
 
 
 def _nn_dist(xy: np.ndarray) -> np.ndarray:
-    """Each point's distance to its nearest other point (inf for a single point): what ``cKDTree(xy).query(xy,
-    k=2)`` gives, value for value (the square root of dx² + dy², its arithmetic), by a compiled sweep in x
-    (8 us for 217 points against ~90 us for building and querying the tree, several times a frame)."""
-    return _nn_dist_kernel(np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
-
-
-@numba.njit(cache=True, nogil=True)
-def _nn_dist_kernel(xy):
-    n = len(xy)
-    out = np.full(n, np.inf)
-    if n < 2:
-        return out
-    order = np.argsort(xy[:, 0], kind="mergesort")
-    xs = xy[order, 0]
-    for a in range(n):
-        i = order[a]
-        best2 = np.inf
-        for step in (-1, 1):
-            b = a + step
-            while 0 <= b < n:
-                dx = xs[b] - xy[i, 0]
-                if dx * dx > best2:
-                    break
-                j = order[b]
-                dy = xy[j, 1] - xy[i, 1]
-                d2 = dx * dx + dy * dy
-                if d2 < best2:
-                    best2 = d2
-                b += step
-        out[i] = math.sqrt(best2)
-    return out
+    """Each point's distance to its nearest other point, inf for a lone point (:func:`~pipeline.vision.nearest.
+    nearest_other_distances`: what a k-d tree's ``query(xy, k=2)`` gives, several times a frame, without the tree)."""
+    return nearest_other_distances(np.ascontiguousarray(xy, np.float64).reshape(-1, 2))
 
 
 def expected_positions(xy: np.ndarray, ids: np.ndarray, xy_before: np.ndarray, ids_before: np.ndarray) -> np.ndarray:
