@@ -48,3 +48,91 @@ def test_nearest_neighbour_distances_equal_the_k_d_trees():
             xy = np.round(xy)
         d = cKDTree(xy).query(xy, k=2)[0][:, 1]
         assert _nn_dist(xy).tobytes() == np.where(np.isfinite(d), d, np.inf).tobytes()
+
+
+def test_k_nearest_points_equal_the_k_d_trees():
+    """Random point sets of 1-300 points and queries (some on the points, some rounded to integers, k up to
+    15, more than the points in some): the distances and indices cKDTree's query gives, bit for bit where no
+    two points tie (a k-d tree keeps an arbitrary one of tied points; :func:`knn` the lower index)."""
+    from pipeline.vision.nearest import knn
+
+    rng = np.random.default_rng(2)
+    for t in range(1500):
+        n, q, k = int(rng.integers(1, 300)), int(rng.integers(1, 100)), int(rng.integers(2, 16))
+        pts = rng.uniform(0.0, 640.0, (n, 2))
+        queries = rng.uniform(-20.0, 660.0, (q, 2))
+        if t % 3 == 0:
+            queries[:min(q, n)] = pts[:min(q, n)]
+        if t % 7 == 0:
+            queries = np.round(queries)
+        d, j = cKDTree(pts).query(queries, k=k)
+        dk, jk = knn(pts, queries, k)
+        assert dk.tobytes() == d.tobytes() and np.array_equal(jk, j)
+    # ties: the lower index first, at the same distance
+    pts = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0], [5.0, 5.0]])
+    d, j = knn(pts, np.zeros((1, 2)), 5)
+    assert j.tolist() == [[0, 1, 2, 3, 4]] and d[0, :4].tolist() == [1.0] * 4
+
+
+def _apart_numpy(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, pts, s_prev):
+    """The lost-neighbours test as numpy's least squares and a k-d tree give it (the definition)."""
+    from pipeline.vision.identity.apart import F2F_APART
+
+    tree = cKDTree(pts)
+    out = np.zeros(len(P), bool)
+    row = np.full(len(known), -1, np.int64)
+    row[prev_ids] = np.arange(len(prev_ids))
+    for i in np.flatnonzero(which):
+        me = prev_ids[i]
+        nbrs = design_nbr[me][design_nbr[me] >= 0]
+        have, missing = nbrs[known[nbrs]], nbrs[~known[nbrs]]
+        if len(have) < 2 or len(missing) == 0:
+            continue
+        dD = design_xy[have] - design_xy[me]
+        if np.linalg.matrix_rank(dD, tol=1e-6 * float(np.abs(dD).max())) < 2:
+            continue
+        A = np.linalg.lstsq(dD, P[row[have]] - P[i], rcond=None)[0]
+        q = pred[i] + ((design_xy[missing] - design_xy[me]) @ A) @ jac[i].reshape(2, 2).T
+        d, j = tree.query(q)
+        out[i] = bool(np.all((j != tree.query(pred[i])[1]) & (d <= F2F_APART * s_prev[i])))
+    return out
+
+
+def test_lost_neighbours_apart_decides_as_least_squares_and_a_k_d_tree_do():
+    """The compiled test against its numpy definition on a design's lattice seen through random affine maps
+    and noise, with random markers lost from the previous frame, blobs missing now and spurious blobs added
+    (some right where a lost neighbour is put, some a spacing off): the same markers stand apart, and both
+    outcomes occur."""
+    from pipeline.design import load_design
+    from pipeline.vision.identity import lattice_of
+    from pipeline.vision.identity.apart import lost_neighbours_apart
+
+    rng = np.random.default_rng(3)
+    seen = [0, 0]
+    for name in ("hexagon127", "square121", "circular217_dome"):
+        lat = lattice_of(load_design(name))
+        n_slots = len(lat.xy)
+        for _ in range(60):
+            A = np.eye(2) * rng.uniform(8.0, 14.0) + rng.normal(0.0, 1.5, (2, 2))
+            img = lat.xy @ A.T + rng.uniform(100.0, 400.0, 2)
+            spacing = float(np.median(np.linalg.norm(lat.xy[lat.nbr[:, 0]] - lat.xy, axis=1))) * abs(np.linalg.det(A)) ** 0.5
+            known = np.ones(n_slots + 1, bool)
+            known[rng.choice(n_slots, int(rng.integers(1, n_slots // 5)), replace=False)] = False
+            prev_ids = np.flatnonzero(known[:-1])
+            P = img[prev_ids] + rng.normal(0.0, 0.03 * spacing, (len(prev_ids), 2))
+            step = rng.normal(0.0, 0.1 * spacing, 2)
+            now = img + step + rng.normal(0.0, 0.05 * spacing, img.shape)
+            keep = rng.random(n_slots) > rng.uniform(0.0, 0.2)
+            extra = now[rng.choice(n_slots, int(rng.integers(0, 15)))] + rng.normal(0.0, rng.choice([0.05, 0.5]) * spacing, (1, 2))
+            pts = np.vstack([now[keep], extra])
+            pred = P + step
+            jac = np.tile(np.eye(2).ravel() + rng.normal(0.0, 0.02, 4), (len(P), 1))
+            which = rng.random(len(P)) < 0.7
+            s_prev = np.full(len(P), spacing) * rng.uniform(0.8, 1.2, len(P))
+            args = (P, prev_ids, pred, jac, which, known, lat.nbr, lat.xy, pts, s_prev)
+            got = lost_neighbours_apart(*args)
+            np.testing.assert_array_equal(got, _apart_numpy(*args))
+            lost_nbr = (~known[lat.nbr[prev_ids]] & (lat.nbr[prev_ids] >= 0)).any(axis=1) & which
+            seen[0] += int((got & lost_nbr).sum())
+            seen[1] += int((~got & lost_nbr).sum())
+    assert min(seen) > 50, seen

@@ -19,7 +19,8 @@ Two searches:
 
 Two sweeps for the compiled loops of a frame's few hundred blobs, in place of a k-d tree's per-query call:
 :func:`nearest_other_distances` (each point's distance to its nearest other, by :func:`nearest_swept`) and
-:func:`x_order` / :func:`x_range` (the points within a reach in x, before an exact distance test).
+:func:`x_order` / :func:`x_range` (the points within a reach in x, before an exact distance test);
+:func:`knn` answers a k-d tree's ``query`` from Python for a frame's points without building one.
 
 Squared distances are ``dx * dx + dy * dy`` everywhere (numpy and the compiled kernels round alike),
 so the table and the brute-force searches agree bit for bit.
@@ -32,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["DESIGN_ORDER_WIDTH", "design_order", "nearest", "nearest_members", "y_order", "nearest_swept",
-           "nearest_other_distances", "x_order", "x_range"]
+           "nearest_other_distances", "knn", "x_order", "x_range"]
 
 #: Design points listed per design point in :func:`design_order`: about four hexagonal shells, enough
 #: for the 8 nearest coded points wherever the coded set is not sparse; a query that runs past its row
@@ -195,6 +196,40 @@ def nearest_other_distances(pts):
             nearest(pts, pts[i, 0], pts[i, 1], 2, idx, d2)
         out[i] = np.sqrt(d2[1])
     return out
+
+
+def knn(pts: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` points of ``pts`` (n, 2) nearest to each of ``queries`` (q, 2): (distances (q, k), indices
+    (q, k)), nearest first, as ``cKDTree(pts).query(queries, k=k)`` gives them for ``k > 1`` (an entry beyond
+    the n points at inf with index n; distances the square roots of ``dx * dx + dy * dy``, value for value),
+    of tied points the lower index first (a k-d tree keeps an arbitrary one). For a frame's few hundred
+    blobs a sweep (:func:`nearest_swept`) instead of a tree built per call: ~10 us for a hundred queries
+    against ~60 us for building and querying the tree."""
+    pts = np.ascontiguousarray(pts, np.float64).reshape(-1, 2)
+    queries = np.ascontiguousarray(queries, np.float64).reshape(-1, 2)
+    return _knn(pts, queries, int(k))
+
+
+@numba.njit(cache=True, nogil=True)
+def _knn(pts, queries, k):
+    n, m = len(pts), len(queries)
+    d = np.full((m, k), np.inf)
+    idx = np.full((m, k), n, np.int64)
+    kk = min(k, n)
+    if kk == 0:
+        return d, idx
+    by_y, ys = np.empty(n, np.int64), np.empty(n)
+    swept = y_order(pts, by_y, ys)
+    oi, od = np.empty(kk, np.int64), np.empty(kk)
+    for i in range(m):
+        if swept:
+            nearest_swept(pts, by_y, ys, queries[i, 0], queries[i, 1], kk, oi, od)
+        else:
+            nearest(pts, queries[i, 0], queries[i, 1], kk, oi, od)
+        for t in range(kk):
+            idx[i, t] = oi[t]
+            d[i, t] = np.sqrt(od[t])
+    return d, idx
 
 
 def x_order(xy: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -5,7 +5,6 @@ the previous frame and completed by following markers from it."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
@@ -13,6 +12,7 @@ from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity.reacquire import reacquire
 from pipeline.vision.identity.constants import R_FEW
 from pipeline.vision.identity.temporal import expected_positions
+from pipeline.vision.nearest import knn, nearest_other_distances
 from pipeline.vision.identity import (R_CONTRADICTED, R_NO_BLOB, R_NOT_FOLLOWED, certify, certify_whole, consistent,
                                       contradicted, frame_to_frame, grow, lattice_of, register_seed)
 
@@ -266,7 +266,7 @@ def _temporally_contradicted(previous, pts: np.ndarray, ids: np.ndarray, carried
     if both.sum() < 3:
         return bad
     step = np.linalg.norm(pts[lab[both]] - previous[0][j[both]], axis=1)
-    spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
+    spacing = float(np.median(nearest_other_distances(np.ascontiguousarray(pts, np.float64))))
     if np.quantile(step, SMALL_MOTION_QUANTILE) >= SMALL_MOTION * spacing:
         return bad
     bad |= contradicted(ids, carried)
@@ -283,9 +283,8 @@ def carry_ids(prev_xy_px: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray) -> 
     out = np.full(len(pts), -1, np.int64)
     if len(pts) < 2 or len(prev_ids) < 2:
         return out
-    tree = cKDTree(pts)
-    spacing = float(np.median(tree.query(pts, k=2)[0][:, 1]))
-    d, j = tree.query(prev_xy_px, k=2)
+    spacing = float(np.median(nearest_other_distances(np.ascontiguousarray(pts, np.float64))))
+    d, j = knn(pts, prev_xy_px, 2)
     ok = (d[:, 0] <= spacing / 3) & (d[:, 1] >= 2 * d[:, 0])
     u, cnt = np.unique(j[ok, 0], return_counts=True)
     ok &= ~np.isin(j[:, 0], u[cnt > 1])

@@ -8,7 +8,6 @@ import math
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchored, _beyond_hits, _centre_holds,
                                                 _components, _rotation_deg)
@@ -19,6 +18,7 @@ from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, 
 from pipeline.vision.identity.fits import _fit, _fit_sums, _gather
 from pipeline.vision.identity.lattice import Lattice, rotation_limit_deg
 from pipeline.vision.identity.neighbours import _adj
+from pipeline.vision.nearest import knn
 
 
 @numba.njit(cache=True, nogil=True)
@@ -291,21 +291,19 @@ def contradicted(slot_of: np.ndarray, other: np.ndarray) -> np.ndarray:
     return bad
 
 
-def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, tree=None,
-         max_rounds: int = 64) -> np.ndarray:
+def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, max_rounds: int = 64) -> np.ndarray:
     """Extend certified patches slot by slot (see the module notes), re-testing after every round."""
     N = len(lat.xy)
     slot_of = slot_of.copy()
     if len(pts) < 2:
         return slot_of
-    tree = cKDTree(pts) if tree is None else tree
     for _ in range(max_rounds):
         blob_of = _blob_of(slot_of, N)
         pred, scale = _predict_free(pts, blob_of, lat.xy, lat.nbr2, lat.pitch)
         free = np.flatnonzero(scale > 0)
         if len(free) == 0:
             break
-        d, j = tree.query(pred[free], k=2)
+        d, j = knn(pts, pred[free], 2)
         d1, d2 = d[:, 0] / scale[free], d[:, 1] / scale[free]
         near = d1 <= GROW_GATE
         reason[free[~near]] = R_NO_BLOB

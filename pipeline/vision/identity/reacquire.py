@@ -14,11 +14,11 @@ missing from the sequence's first frame, which has no certified position at all)
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.temporal import (F2F_FIT_RESIDUAL, F2F_GATE, F2F_GATE_ALONE, F2F_MARGIN, F2F_MIN_FIT,
                                                F2F_RATIO, F2F_SPREAD, _assign_mutual, _fit, _neighbourhoods,
                                                _nn_dist, _predict, expected_positions)
+from pipeline.vision.nearest import knn
 from pipeline.vision.identity.apart import stand_apart
 
 __all__ = ["REACQUIRE_FRAMES", "reacquire", "carry_lost"]
@@ -76,7 +76,6 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     if n < F2F_MIN_FIT + 1 or not history or have.sum() < F2F_MIN_FIT:
         return out
     pts = np.ascontiguousarray(pts, dtype=np.float64)
-    tree = cKDTree(pts)
     s_cur = _nn_dist(pts)
     top = int(max(ids.max(), max((int(h[1].max(initial=-1)) for h in history), default=-1))) + 1
     blob_of = np.full(top, -1, np.int64)
@@ -128,10 +127,10 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
                             rivals.append(q[None])
                         places.append(q)
                     # neighbours with blobs of their own, apart from the marker's, cannot share it
-                    if ok[i] and stand_apart(tree, np.reshape(places, (-1, 2)), pred[i], s_prev[i]):
+                    if ok[i] and stand_apart(pts, np.reshape(places, (-1, 2)), pred[i], s_prev[i]):
                         gate[i] = F2F_GATE
             rivals = np.vstack(rivals)
-            got = _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, cur >= 0, rivals)
+            got = _accept_free(pred, ok, pts, s_cur, s_prev, gate, cur >= 0, rivals)
             hit = got >= 0
             if not hit.any():
                 break
@@ -141,7 +140,7 @@ def reacquire(history, ids: np.ndarray, pts: np.ndarray, design_nbr: np.ndarray 
     return out
 
 
-def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
+def _accept_free(pred, ok, pts, s_cur, s_prev, gate, taken, rivals):
     """:func:`_accept` for re-acquisition: the nearest blob must also be free (not ``taken``), and the
     identified blobs count as predictions of their markers in the mutual test, as do ``rivals``: the
     predictions of the other lost markers whose fit did not pass the residual test (a lost neighbour
@@ -149,7 +148,7 @@ def _accept_free(pred, ok, tree, pts, s_cur, s_prev, gate, taken, rivals):
     but says so)."""
     out = np.full(len(pred), -1, np.int64)
     idx = np.flatnonzero(ok)
-    d, j = tree.query(pred[idx], k=2)
+    d, j = knn(pts, pred[idx], 2)
     others = np.vstack([pred[idx], pts[taken], rivals])
     s_pred = np.minimum(s_prev[idx], _nn_dist(others)[:len(idx)])
     s = np.minimum(s_cur[j[:, 0]], s_pred)

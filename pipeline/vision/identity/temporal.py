@@ -47,11 +47,10 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pipeline.vision.identity.apart import lost_neighbours_apart
 from pipeline.vision.identity.motion_fit import _predict
-from pipeline.vision.nearest import nearest_other_distances
+from pipeline.vision.nearest import knn, nearest_other_distances
 
 #: Gate about a marker's predicted position, as a fraction of the local spacing (the smallest of the
 #: nearest blob's nearest-neighbour distance now, the marker's and its neighbours' (median) in the
@@ -154,10 +153,9 @@ def _neighbourhoods(P: np.ndarray):
     neighbour indices, near (M, K) within reach, shell (M, K) the reachable first shell, s_prev (M,)
     local spacing: the marker's nearest-neighbour distance or its neighbours' median, the smaller)."""
     m = len(P)
-    ptree = cKDTree(P)
     s_prev = _nn_dist(P)
     k = min(F2F_NEIGHBOURS, m - 1)
-    dn, nb = ptree.query(P, k=k + 1)
+    dn, nb = knn(P, P, k + 1)
     dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
     near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
     first = np.arange(k) < F2F_SHELL
@@ -203,7 +201,7 @@ def _fit_nearest(P, pts, corr, s_prev, B, which, space, reach):
     has = np.flatnonzero(corr >= 0)
     if len(has) < F2F_FOLLOWED_MIN_FIT + 1:
         return P, np.zeros(len(P), bool), np.zeros((len(P), 4)), np.full(len(P), np.inf)
-    d, j = cKDTree(space[has]).query(space, k=min(F2F_NEIGHBOURS + 1, len(has)))
+    d, j = knn(space[has], space, min(F2F_NEIGHBOURS + 1, len(has)))
     nb = np.ascontiguousarray(has[j], dtype=np.int64)
     near = (nb != np.arange(len(P))[:, None]) & (d <= reach) & which[:, None]
     pred, ok, jac, res = _predict(P, pts, nb, near, corr, s_prev, F2F_FOLLOWED_MIN_FIT, F2F_SPREAD, F2F_FIT_RESIDUAL, B)
@@ -241,7 +239,7 @@ def _median_where_kernel(v, mask, default):
     return out
 
 
-def _accept(pred: np.ndarray, ok: np.ndarray, tree: cKDTree, pts: np.ndarray, s_cur: np.ndarray, s_prev: np.ndarray,
+def _accept(pred: np.ndarray, ok: np.ndarray, pts: np.ndarray, s_cur: np.ndarray, s_prev: np.ndarray,
             gate) -> np.ndarray:
     """Current blob index per prediction (-1 where refused): nearest blob within the gate, clear of the
     second-nearest, and mutual (no other prediction nearly as near to that blob). ``gate``: in local
@@ -252,7 +250,7 @@ def _accept(pred: np.ndarray, ok: np.ndarray, tree: cKDTree, pts: np.ndarray, s_
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return out
-    d, j = tree.query(pred[idx], k=2)
+    d, j = knn(pts, pred[idx], 2)
     s = np.minimum(s_cur[j[:, 0]], s_prev[idx])
     good = ((d[:, 0] <= np.broadcast_to(gate, len(pred))[idx] * s) & (d[:, 1] >= F2F_RATIO * d[:, 0])
             & (d[:, 1] - d[:, 0] >= F2F_MARGIN * s))
@@ -272,7 +270,7 @@ def _assign_mutual(out: np.ndarray, idx: np.ndarray, j1: np.ndarray, d1: np.ndar
     when the blob's nearest candidate is this prediction and the next candidate is :data:`F2F_RATIO` times
     and :data:`F2F_MARGIN` spacings farther (``cand`` may hold more points after the predictions: they only
     compete), and no other prediction takes the same blob. Writes into ``out`` and returns it."""
-    pd, pj = cKDTree(cand).query(pts[j1], k=2)
+    pd, pj = knn(cand, pts[j1], 2)
     mutual = (pj[:, 0] == np.arange(len(idx))) & (pd[:, 1] >= F2F_RATIO * d1) & (pd[:, 1] - d1 >= F2F_MARGIN * s)
     idx, j1 = idx[mutual], j1[mutual]
     u, c = np.unique(j1, return_counts=True)
@@ -306,7 +304,6 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
         return out
     P = np.ascontiguousarray(prev_xy, dtype=np.float64)
     pts = np.ascontiguousarray(pts, dtype=np.float64)
-    tree = cKDTree(pts)
     s_cur = _nn_dist(pts)
     nb, near, shell, s_prev = _neighbourhoods(P)
 
@@ -327,7 +324,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
 
     # bootstrap: mutual nearest neighbours with the ratio test, the previous position as prediction
     E = P if expected is None else np.where(np.isfinite(expected), expected, P)
-    corr = _accept(P if start_at_previous else E, np.ones(m, bool), tree, pts, s_cur, s_prev, F2F_BOOTSTRAP)
+    corr = _accept(P if start_at_previous else E, np.ones(m, bool), pts, s_cur, s_prev, F2F_BOOTSTRAP)
     started = corr >= 0
     moving = None if expected is None else np.isfinite(expected).all(axis=1)
     for _ in range(F2F_ROUNDS):
@@ -335,7 +332,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
         g = gate
         if apart.any():
             g = gate.copy()
-            g[lost_neighbours_apart(P, prev_ids, pred, jac, ok & apart, known, design_nbr, design_xy, tree, s_prev)] = F2F_GATE
+            g[lost_neighbours_apart(P, prev_ids, pred, jac, ok & apart, known, design_nbr, design_xy, pts, s_prev)] = F2F_GATE
         if moving is not None and moving.any():
             # where the increment itself is not affine over the neighbourhood (pins crowding into
             # the crests faster frame by frame), its change from the last frame's still is: the
@@ -351,7 +348,7 @@ def frame_to_frame(prev_xy: np.ndarray, prev_ids: np.ndarray, pts: np.ndarray, e
             ok = ok | okv
         # where the skin crowds in this very frame, the predictions crowd with it
         s_pred = np.minimum(s_prev, _nn_dist(pred))
-        new = _accept(pred, ok, tree, pts, s_cur, s_pred, g)
+        new = _accept(pred, ok, pts, s_cur, s_pred, g)
         if np.array_equal(new, corr):
             break
         corr = new
