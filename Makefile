@@ -34,7 +34,7 @@ $(STAMP): pyproject.toml
 	    && echo "installed chromium (report checks in a headless browser)"; } || \
 	  echo "note: chromium not installed; the report browser tests will skip (and fail under CI=true)"
 	# compile the pipeline's numba kernels once (~30-35 s here); cached in each package's __pycache__
-	$(BIN)/python -c "from pipeline.runner import compile_kernels; print(f'pipeline kernels ready in {compile_kernels():.1f} s')"
+	$(BIN)/python -c "from pipeline.warmup import compile_kernels; print(f'pipeline kernels ready in {compile_kernels():.1f} s')"
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -21,7 +21,7 @@ from pipeline.threads import VIEW_THREADS, ViewPolicy, both_views, default_view_
 from pipeline.geometry.triangulation import matched_rays, triangulate
 from pipeline.types import Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration, StereoFrame
 
-__all__ = ["Reconstructor", "FrameResult", "compile_kernels", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
+__all__ = ["Reconstructor", "FrameResult", "RunnerError", "REFRACTION_MODES", "TRACKERS"]
 
 REFRACTION_MODES = ("exact", "linear")
 TRACKERS = ("dtrc", "nn")
@@ -382,29 +382,3 @@ class Reconstructor:
             for i, r in zip(coding.unmatched_ids.tolist(), coding.unmatched_reasons):
                 out[int(i)] = (out[int(i)] + "; " if int(i) in out else "") + f"{side}: {r}"
         return out
-
-
-def compile_kernels() -> float:
-    """Run the whole chain on two analytic frames so that numba compiles (or loads from its cache) every kernel
-    of the common path; returns the seconds it took: ~30-35 s after an install on the 2-core reference machine,
-    well under a second from the cache. ``make setup`` calls it so that the first real frame does not pay."""
-    from pipeline.design import DEFAULT_DESIGN, load_design
-    from pipeline.vision.detection.detect import compile_crowded_kernels, detect_markers
-    from pipeline.vision.dtrc import code_rings
-    from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
-
-    t0 = time.perf_counter()
-    design = load_design(DEFAULT_DESIGN)
-    calib = nominal_calibration(design)
-    rec = Reconstructor(design, calib)
-    for depth in (0.0, 2.0):
-        frame = synth_stereo_frame(design, calib, gaussian_press_markers(design, depth))
-        rec.process(frame)            # strided half-frame views, as from a camera
-    # a single contiguous view (the detect command), with a marker missing and a spurious blob far out
-    blobs = detect_markers(np.ascontiguousarray(frame.left))
-    code_rings(blobs, design)
-    code_rings(Blobs(np.vstack([blobs.xy_px[1:], [[2.0, 2.0]]]), np.r_[blobs.sigma_px[1:], blobs.sigma_px[:1]],
-                     np.r_[blobs.response[1:], blobs.response[:1]]), design)
-    compile_crowded_kernels()         # touching and overlapping pins, which these frames do not show
-    return time.perf_counter() - t0
-
