@@ -8,6 +8,7 @@ import numpy as np
 
 from pipeline.design import SensorDesign
 from pipeline.vision.identity.anchoring import _components
+from pipeline.vision.identity.certify import grow_round
 from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity.reacquire import reacquire
 from pipeline.vision.identity.constants import R_FEW
@@ -74,7 +75,9 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     # must not spoil a right one); the two best certified results are merged and certified again.
     def run(p):
         r = np.full(n_slots, R_NO_BLOB, np.int64)
-        return certify(pts, grow(pts, consistent(pts, p, lat, r), lat, r), lat, r), r
+        grown = grow(pts, consistent(pts, p, lat, r), lat, r)
+        ids = certify(pts, grown, lat, r)
+        return ids, r, np.array_equal(ids, grown)
 
     def count(c):
         return int((c[0] >= 0).sum())
@@ -99,9 +102,9 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             if count(cands[-1]) >= enough:
                 break
     cands.sort(key=lambda c: -count(c))
-    if len(cands) > 1 and count(cands[1]) > 0:
+    if len(cands) > 1 and count(cands[1]) > 0 and not _settled(pts, cands[0], _merge(cands[0][0], cands[1][0]), lat):
         cands.append(run(_merge(cands[0][0], cands[1][0])))
-    ids, reason = max(cands, key=count)
+    ids, reason, _ = max(cands, key=count)
     if lat.translation_lattice:
         ids, reason = _withdraw_thinly_held(ids, reason, lat, msgs)
     rule_ids = ids
@@ -125,6 +128,16 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     if defects or n_certified < n_slots:
         msgs.append(f"certainty rule: {n_certified} of {n_slots} ids certain")
     return ids, reason, followed
+
+
+def _settled(pts: np.ndarray, best: tuple, merged: np.ndarray, lat) -> bool:
+    """Whether certifying the merged reading ``merged`` again would give the best reading ``best`` (ids, reasons,
+    whether certification withdrew nothing after growth) back unchanged, so that it need not run: the merge
+    added nothing to it, its certification withdrew nothing (it is consistent and anchored as it stands), and
+    growth would propose no blob for any free slot. (The usual frame with a missing or spurious blob: ring
+    coding's reading and the ids carried from the previous frame certify to the same ids.)"""
+    return bool(best[2] and np.array_equal(merged, best[0])
+                and len(grow_round(pts, merged, lat, np.zeros(len(lat.xy), np.int64))[0]) == 0)
 
 
 #: An interior marker of a hexagonal or square pattern keeps its id only with at least this many of its

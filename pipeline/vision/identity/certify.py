@@ -293,30 +293,11 @@ def contradicted(slot_of: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, max_rounds: int = 64) -> np.ndarray:
     """Extend certified patches slot by slot (see the module notes), re-testing after every round."""
-    N = len(lat.xy)
     slot_of = slot_of.copy()
     if len(pts) < 2:
         return slot_of
     for _ in range(max_rounds):
-        blob_of = _blob_of(slot_of, N)
-        pred, scale = _predict_free(pts, blob_of, lat.xy, lat.nbr2, lat.pitch)
-        free = np.flatnonzero(scale > 0)
-        if len(free) == 0:
-            break
-        d, j = knn(pts, pred[free], 2)
-        d1, d2 = d[:, 0] / scale[free], d[:, 1] / scale[free]
-        near = d1 <= GROW_GATE
-        reason[free[~near]] = R_NO_BLOB
-        amb = near & ~((d2 >= 2 * d1) & (d2 - d1 >= AMBIGUITY_MARGIN))
-        reason[free[amb]] = R_AMBIGUOUS
-        take = near & ~amb & (slot_of[j[:, 0]] < 0)
-        cand = j[take, 0]
-        slots = free[take]
-        # a blob claimed by two free slots is ambiguous for both
-        u, cnt = np.unique(cand, return_counts=True)
-        dup = np.isin(cand, u[cnt > 1])
-        reason[slots[dup]] = R_AMBIGUOUS
-        cand, slots = cand[~dup], slots[~dup]
+        cand, slots = grow_round(pts, slot_of, lat, reason)
         if len(cand) == 0:
             break
         trial = slot_of.copy()
@@ -329,3 +310,28 @@ def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray,
         if gained <= 0:
             break
     return slot_of
+
+
+def grow_round(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The blobs one round of :func:`grow` proposes for free slots (blob indices, their slots), before the
+    consistency test; the reasons of the slots it cannot fill are written into ``reason``. None: ``grow``
+    returns a reading as it is (with at least two blobs)."""
+    blob_of = _blob_of(slot_of, len(lat.xy))
+    pred, scale = _predict_free(pts, blob_of, lat.xy, lat.nbr2, lat.pitch)
+    free = np.flatnonzero(scale > 0)
+    if len(free) == 0:
+        return free, free
+    d, j = knn(pts, pred[free], 2)
+    d1, d2 = d[:, 0] / scale[free], d[:, 1] / scale[free]
+    near = d1 <= GROW_GATE
+    reason[free[~near]] = R_NO_BLOB
+    amb = near & ~((d2 >= 2 * d1) & (d2 - d1 >= AMBIGUITY_MARGIN))
+    reason[free[amb]] = R_AMBIGUOUS
+    take = near & ~amb & (slot_of[j[:, 0]] < 0)
+    cand = j[take, 0]
+    slots = free[take]
+    # a blob claimed by two free slots is ambiguous for both
+    u, cnt = np.unique(cand, return_counts=True)
+    dup = np.isin(cand, u[cnt > 1])
+    reason[slots[dup]] = R_AMBIGUOUS
+    return cand[~dup], slots[~dup]

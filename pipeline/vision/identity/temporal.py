@@ -219,21 +219,25 @@ def _median_where(v: np.ndarray, mask: np.ndarray, default: np.ndarray) -> np.nd
 @numba.njit(cache=True, nogil=True)
 def _median_where_kernel(v, mask, default):
     out = default.copy()
-    vals = np.empty(v.shape[1])
+    s = np.empty(v.shape[1])
     for i in range(v.shape[0]):
         m, any_mask = 0, False
         for j in range(v.shape[1]):
             if mask[i, j]:
                 any_mask = True
-                if not np.isnan(v[i, j]):
-                    vals[m] = v[i, j]
+                x = v[i, j]
+                if not np.isnan(x):
+                    k = m                      # insertion sort into s[:m + 1] (a row is a dozen values)
+                    while k > 0 and s[k - 1] > x:
+                        s[k] = s[k - 1]
+                        k -= 1
+                    s[k] = x
                     m += 1
         if not any_mask:
             continue
         if m == 0:
             out[i] = np.nan
             continue
-        s = np.sort(vals[:m])
         h = m // 2
         out[i] = s[h] if m % 2 == 1 else (s[h - 1] + s[h]) / 2.0
     return out
