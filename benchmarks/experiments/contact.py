@@ -7,11 +7,12 @@ those experiments press on and the designs' friction:
 * Gaussians h = 5 mm, σ² ∈ {5/3, 2.5, 5, 10, 20, 50} mm², captured settled at 1, 2, 3, 4 and 5 mm, skins 0.5,
   1.0 and 1.5 mm (the Gaussian experiment's designs and its axis contact mesh);
 * sines z = 2.5 sin(ωx), ω ∈ {π/15, 2π/15, π/5, 4π/15, π/3, 2π/5} (the paper's five and π/3 between its two
-  narrowest), at the paper's 5 mm (the sine experiment's plate and mesh), on hexagon127: the marker pattern does not
-  enter the physics (the pins are embedded in the skin mesh kinematically, :mod:`twin.mesh`), so the sine
-  experiment's three separations press the same skin (measured 2026-11-29: at five of the six ω the three give the
-  same penetration and contact force to the last digit; at 2π/15 hexagon61_sep354's differ from the other two by
-  2e-5 mm and 0.001 N).
+  narrowest), at the paper's 5 mm (the sine experiment's plate and mesh), on hexagon127: the pins are embedded in the
+  skin mesh kinematically (:mod:`twin.mesh`), so the marker pattern enters the physics only through the settle's
+  stopping test, the markers' drift (:func:`twin.solve.settle`), and the sine experiment's three separations press
+  the same skin (measured 2026-11-29: at five of the six ω the three give the same penetration and contact force to
+  the last digit; at 2π/15 hexagon61_sep354's differ from the other two by 2e-5 mm and 0.001 N, also in fresh
+  processes).
 
 Each frame is judged by its own verdict (:mod:`twin.validity`): the outer skin's vertices, face centroids and
 edge midpoints, and the indenter's 0.1 mm samples, at most 0.05 mm inside the indenter's true surface; the
