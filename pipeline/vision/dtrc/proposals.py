@@ -76,7 +76,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     def run(p):
         r = np.full(n_slots, R_NO_BLOB, np.int64)
         grown = grow(pts, consistent(pts, p, lat, r), lat, r)
-        ids = certify(pts, grown, lat, r)
+        ids = certify(pts, grown, lat, r, consistent_input=True)
         return ids, r, np.array_equal(ids, grown)
 
     def count(c):

@@ -124,7 +124,8 @@ def _whole_kernel(pts, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab,
                                   loo_m, loo_tab, fan, closed, pitch, gate, evidence)
 
 
-def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray | None = None):
+def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray | None = None,
+            consistent_input: bool = False):
     """Apply the certainty rule to a proposal.
 
     Parameters
@@ -133,6 +134,9 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
     slot_of : (n,) int64 proposed design id per blob (-1 none; ids unique)
     lat : :class:`Lattice`
     reason : (N,) int64, optional, updated in place with the reason code of every withdrawn id
+    consistent_input : bool
+        ``slot_of`` is what :func:`consistent` or :func:`grow` returned (locally consistent as it stands: both
+        strip labels until none fails), so the first pass skips the consistency test it would pass unchanged
 
     Returns
     -------
@@ -143,18 +147,20 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
     # the markers of a withdrawn patch or piece were some of the neighbours the markers beside them
     # were found consistent with (a marker joined to the rest only through a withdrawn piece is left
     # with one identified neighbour): the survivors are tested again, until nothing more is withdrawn
+    checked = consistent_input
     while True:
-        slot_of, withdrawn = _certify_once(pts, slot_of, lat, reason)
+        slot_of, withdrawn = _certify_once(pts, slot_of, lat, reason, checked)
         if not withdrawn:
             return slot_of
+        checked = False
 
 
-def _certify_once(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice,
-                  reason: np.ndarray) -> tuple[np.ndarray, bool]:
-    """One pass of :func:`certify`: consistency, then each patch's anchoring and rotation. Returns
-    (ids, whether a patch of consistent markers was withdrawn)."""
+def _certify_once(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray,
+                  checked: bool = False) -> tuple[np.ndarray, bool]:
+    """One pass of :func:`certify`: consistency (unless ``checked``: ``slot_of`` is already consistent), then each
+    patch's anchoring and rotation. Returns (ids, whether a patch of consistent markers was withdrawn)."""
     N = len(lat.xy)
-    slot_of = consistent(pts, slot_of, lat, reason)
+    slot_of = slot_of.copy() if checked else consistent(pts, slot_of, lat, reason)
     lab = np.flatnonzero(slot_of >= 0)
     if len(lab) == 0:
         return slot_of, False
@@ -292,7 +298,9 @@ def contradicted(slot_of: np.ndarray, other: np.ndarray) -> np.ndarray:
 
 
 def grow(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray, max_rounds: int = 64) -> np.ndarray:
-    """Extend certified patches slot by slot (see the module notes), re-testing after every round."""
+    """Extend certified patches slot by slot (see the module notes), re-testing after every round. Given a
+    reading :func:`consistent` returned, it returns one :func:`consistent` would return unchanged (each round's
+    trial is its output, and a reading that gains nothing is returned as given)."""
     slot_of = slot_of.copy()
     if len(pts) < 2:
         return slot_of
