@@ -86,11 +86,12 @@ def _with_defects(frame, design, calib, xyz: np.ndarray, rate: float, rng: np.ra
     from pipeline.geometry.refraction import project_through_stack
     from pipeline.io.synthetic import BACKGROUND_GREY, MARKER_GREY
     from pipeline.types import StereoFrame
+    from pipeline.vision.nearest import nearest_other_distances
 
     n = int(round(rate * len(xyz)))
     views = [frame.left.copy(), frame.right.copy()]
     for view, px in zip(views, project_through_stack(xyz, calib, design)):
-        sep = float(np.median(np.sort(np.hypot(*(px[:, None] - px[None]).transpose(2, 0, 1)), axis=1)[:, 1]))
+        sep = float(np.median(nearest_other_distances(np.ascontiguousarray(px, np.float64))))
         for i in rng.choice(len(px), n, replace=False):
             cv2.circle(view, (int(round(px[i, 0])), int(round(px[i, 1]))), int(round(0.45 * sep)), BACKGROUND_GREY, -1)
         lo, hi, added = px.min(axis=0), px.max(axis=0), 0

@@ -43,13 +43,10 @@ OMEGA_LABELS = ("π/15", "2π/15", "π/5", "4π/15", "π/3", "2π/5")
 PENETRATION_BOUND_MM = 0.05
 
 
-def _family_metrics() -> dict:
-    return {**CELL_COUNT_METRICS, "frames": "1", "presses": "1",
-            "penetration_max_mm": "mm", "penetration_p99_max_mm": "mm", "penetration_max_mm_gaussian": "mm",
-            "penetration_max_mm_sine": "mm", "contact_force_max_n": "N"}
-
-
-@register("contact", tags=("quick",), metrics=_family_metrics(),
+@register("contact", tags=("quick",),
+          metrics={**CELL_COUNT_METRICS, "frames": "1", "presses": "1", "penetration_max_mm": "mm",
+                   "penetration_p99_max_mm": "mm", "penetration_max_mm_gaussian": "mm", "penetration_max_mm_sine": "mm",
+                   "contact_force_max_n": "N"},
           requires=("twin.simulate", "twin.validity", "twin.indenters"))
 def run(ctx: Context) -> Result:
     """Twin contact validity: every frame of Gaussians σ² 5/3-50 at 1-5 mm on three skins and sines π/15-2π/5."""

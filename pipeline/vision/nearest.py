@@ -33,7 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = ["DESIGN_ORDER_WIDTH", "design_order", "nearest", "nearest_members", "y_order", "nearest_swept",
-           "nearest_other_distances", "knn", "x_order", "x_range"]
+           "nearest_in", "nearest_other_distances", "knn", "x_order", "x_range"]
 
 #: Design points listed per design point in :func:`design_order`: about four hexagonal shells, enough
 #: for the 8 nearest coded points wherever the coded set is not sparse; a query that runs past its row
@@ -130,6 +130,16 @@ def nearest_swept(pts, by_y, ys, x, y, k, out_idx, out_d2):
 
 
 @numba.njit(inline="always")
+def nearest_in(pts, by_y, ys, swept, x, y, k, out_idx, out_d2):
+    """:func:`nearest_swept` where :func:`y_order` sorted the points (``swept``), else :func:`nearest` (a point
+    with a coordinate that is not finite leaves no usable order): the same points in the same order either way."""
+    if swept:
+        nearest_swept(pts, by_y, ys, x, y, k, out_idx, out_d2)
+    else:
+        nearest(pts, x, y, k, out_idx, out_d2)
+
+
+@numba.njit(inline="always")
 def _sweep(pts, by_y, start, stop, step, x, y, k, out_idx, out_d2, n):
     """One direction of :func:`nearest_swept`: offer the points ``by_y[start:stop:step]`` in turn to the
     ``n`` kept so far, stopping at the first whose ``dy * dy`` is beyond the k-th kept squared distance;
@@ -178,24 +188,10 @@ def nearest_members(xy, order, member, s, k, skip_self, out):
 
 @numba.njit(cache=True, nogil=True)
 def nearest_other_distances(pts):
-    """Each point's distance to its nearest other point (inf for a lone point): the square root of the second
-    squared distance :func:`nearest_swept` finds from the point itself (the first is the point, or a duplicate
-    of it, at 0). What ``cKDTree(pts).query(pts, k=2)`` gives, value for value (tests/test_temporal_kernels.py):
+    """Each point's distance to its nearest other point (inf for a lone point): the second of the two nearest
+    :func:`knn` finds from the point itself (the first is the point, or a duplicate of it, at 0). What ``cKDTree(pts).query(pts, k=2)`` gives, value for value (tests/test_temporal_kernels.py):
     ~8 us for 217 points against ~90 us for building and querying the tree."""
-    n = len(pts)
-    out = np.full(n, np.inf)
-    if n < 2:
-        return out
-    by_y, ys = np.empty(n, np.int64), np.empty(n)
-    swept = y_order(pts, by_y, ys)
-    idx, d2 = np.empty(2, np.int64), np.empty(2)
-    for i in range(n):
-        if swept:
-            nearest_swept(pts, by_y, ys, pts[i, 0], pts[i, 1], 2, idx, d2)
-        else:
-            nearest(pts, pts[i, 0], pts[i, 1], 2, idx, d2)
-        out[i] = np.sqrt(d2[1])
-    return out
+    return _knn(pts, pts, 2)[0][:, 1].copy()
 
 
 def knn(pts: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -222,10 +218,7 @@ def _knn(pts, queries, k):
     swept = y_order(pts, by_y, ys)
     oi, od = np.empty(kk, np.int64), np.empty(kk)
     for i in range(m):
-        if swept:
-            nearest_swept(pts, by_y, ys, queries[i, 0], queries[i, 1], kk, oi, od)
-        else:
-            nearest(pts, queries[i, 0], queries[i, 1], kk, oi, od)
+        nearest_in(pts, by_y, ys, swept, queries[i, 0], queries[i, 1], kk, oi, od)
         for t in range(kk):
             idx[i, t] = oi[t]
             d[i, t] = np.sqrt(od[t])

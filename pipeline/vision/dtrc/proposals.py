@@ -102,8 +102,10 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             if count(cands[-1]) >= enough:
                 break
     cands.sort(key=lambda c: -count(c))
-    if len(cands) > 1 and count(cands[1]) > 0 and not _settled(pts, cands[0], _merge(cands[0][0], cands[1][0]), lat):
-        cands.append(run(_merge(cands[0][0], cands[1][0])))
+    if len(cands) > 1 and count(cands[1]) > 0:
+        merged = _merge(cands[0][0], cands[1][0])
+        if not _settled(pts, cands[0], merged, lat):
+            cands.append(run(merged))
     ids, reason, _ = max(cands, key=count)
     if lat.translation_lattice:
         ids, reason = _withdraw_thinly_held(ids, reason, lat, msgs)

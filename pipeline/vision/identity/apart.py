@@ -14,7 +14,7 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.nearest import knn, nearest, nearest_swept, y_order
+from pipeline.vision.nearest import nearest_in, y_order
 
 #: A lost neighbour stands apart from the marker when it has a blob of its own within this many local
 #: spacings of where the marker's neighbourhood puts it (:func:`lost_neighbours_apart`): a neighbour whose
@@ -52,6 +52,7 @@ def _apart(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, pts, s_p
     by_y, ys = np.empty(n, np.int64), np.empty(n)
     swept = y_order(pts, by_y, ys)
     oi, od = np.empty(1, np.int64), np.empty(1)
+    places = np.empty((design_nbr.shape[1], 2))
     for i in range(len(P)):
         if not which[i]:
             continue
@@ -90,9 +91,7 @@ def _apart(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, pts, s_p
         a10 = (a * gx1 - b * gx0) / det
         a01 = (c * gy0 - b * gy1) / det
         a11 = (a * gy1 - b * gy0) / det
-        _nearest_one(pts, by_y, ys, swept, pred[i, 0], pred[i, 1], oi, od)
-        mine = oi[0]
-        ok = True
+        k = 0
         for t in range(design_nbr.shape[1]):
             nbr = design_nbr[me, t]
             if nbr < 0 or known[nbr]:
@@ -101,27 +100,39 @@ def _apart(P, prev_ids, pred, jac, which, known, design_nbr, design_xy, pts, s_p
             ey = design_xy[nbr, 1] - design_xy[me, 1]
             vx = ex * a00 + ey * a10                   # previous image offset
             vy = ex * a01 + ey * a11
-            qx = pred[i, 0] + vx * jac[i, 0] + vy * jac[i, 1]
-            qy = pred[i, 1] + vx * jac[i, 2] + vy * jac[i, 3]
-            _nearest_one(pts, by_y, ys, swept, qx, qy, oi, od)
-            if oi[0] == mine or not (math.sqrt(od[0]) <= F2F_APART * s_prev[i]):
-                ok = False
-                break
-        out[i] = ok
+            places[k, 0] = pred[i, 0] + vx * jac[i, 0] + vy * jac[i, 1]
+            places[k, 1] = pred[i, 1] + vx * jac[i, 2] + vy * jac[i, 3]
+            k += 1
+        out[i] = _stands_apart(pts, by_y, ys, swept, places[:k], pred[i, 0], pred[i, 1], s_prev[i], oi, od)
     return out
 
 
 @numba.njit(inline="always")
-def _nearest_one(pts, by_y, ys, swept, x, y, oi, od):
-    if swept:
-        nearest_swept(pts, by_y, ys, x, y, 1, oi, od)
-    else:
-        nearest(pts, x, y, 1, oi, od)
+def _stands_apart(pts, by_y, ys, swept, places, x, y, spacing, oi, od):
+    """:func:`stand_apart` on blobs ordered by :func:`~pipeline.vision.nearest.y_order` (``oi``, ``od``: one-entry
+    buffers)."""
+    nearest_in(pts, by_y, ys, swept, x, y, 1, oi, od)
+    mine = oi[0]
+    for k in range(len(places)):
+        nearest_in(pts, by_y, ys, swept, places[k, 0], places[k, 1], 1, oi, od)
+        if oi[0] == mine or not (math.sqrt(od[0]) <= F2F_APART * spacing):
+            return False
+    return True
 
 
 def stand_apart(pts: np.ndarray, places: np.ndarray, pred: np.ndarray, spacing: float) -> bool:
     """Whether each of ``places`` (k, 2), where a marker's lost neighbours are put now, has a blob (of ``pts``
     (n, 2)) of its own within :data:`F2F_APART` local spacings (``spacing``, px) that is not the marker's
     nearest blob to its prediction ``pred`` (2,)."""
-    d, j = knn(pts, np.vstack([np.reshape(pred, (1, 2)), np.reshape(places, (-1, 2))]), 1)
-    return bool(np.all((j[1:, 0] != j[0, 0]) & (d[1:, 0] <= F2F_APART * spacing)))
+    pts = np.ascontiguousarray(pts, np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return len(places) == 0
+    return _stand_apart(pts, np.ascontiguousarray(places, np.float64).reshape(-1, 2), float(pred[0]), float(pred[1]),
+                        float(spacing))
+
+
+@numba.njit(cache=True, nogil=True)
+def _stand_apart(pts, places, x, y, spacing):
+    by_y, ys = np.empty(len(pts), np.int64), np.empty(len(pts))
+    swept = y_order(pts, by_y, ys)
+    return _stands_apart(pts, by_y, ys, swept, places, x, y, spacing, np.empty(1, np.int64), np.empty(1))

@@ -17,7 +17,7 @@ from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, 
 from pipeline.vision.identity.fans import _embedded
 from pipeline.vision.identity.fits import _fit, _fit_sums, _fit_tab, _gather, _row_length
 from pipeline.vision.identity.neighbours import _adj
-from pipeline.vision.nearest import nearest, nearest_swept, y_order
+from pipeline.vision.nearest import nearest_in, y_order
 
 
 @numba.njit(cache=True, nogil=True)
@@ -86,10 +86,7 @@ def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
     """The two blobs nearest to (x, y), as :func:`nearest` finds them (:func:`nearest_swept`)."""
     if sweep[0] == 0:
         sweep[0] = 1 if y_order(pts, by_y, ys) else 2
-    if sweep[0] == 1:
-        nearest_swept(pts, by_y, ys, x, y, 2, two, two_d2)
-    else:
-        nearest(pts, x, y, 2, two, two_d2)
+    nearest_in(pts, by_y, ys, sweep[0] == 1, x, y, 2, two, two_d2)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -153,10 +153,10 @@ def _neighbourhoods(P: np.ndarray):
     neighbour indices, near (M, K) within reach, shell (M, K) the reachable first shell, s_prev (M,)
     local spacing: the marker's nearest-neighbour distance or its neighbours' median, the smaller)."""
     m = len(P)
-    s_prev = _nn_dist(P)
     k = min(F2F_NEIGHBOURS, m - 1)
     dn, nb = knn(P, P, k + 1)
     dn, nb = dn[:, 1:], nb[:, 1:]                              # never the marker itself
+    s_prev = dn[:, 0].copy() if k > 0 else np.full(m, np.inf)  # the nearest other marker (:func:`_nn_dist`)
     near = np.isfinite(dn) & (dn <= F2F_RADIUS * s_prev[:, None])
     first = np.arange(k) < F2F_SHELL
     near |= first & np.isfinite(dn) & (dn <= F2F_SHELL_REACH * np.median(s_prev[np.isfinite(s_prev)]))
