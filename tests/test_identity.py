@@ -577,8 +577,14 @@ _OFF_AXIS_CIRCULAR_VIEWS = [(4081341151, 1.0855, 0.1260, 0.0262, (2.0699, -1.472
                             (2958509890, 1.4968, 0.5346, 0.0050, (-0.7799, -4.3543))]
 
 
+# the seed-777 search below (4,000 draws, 3,206 in scope, 27.4 % coverage, re-run 2026-11-29) finds one wrong id
+# too, in a view pressed by a sigma 1.15 mm tip almost on the axis (209 ids, one wrong; the same at 6d2c121); it gave
+# none at 24.7 % coverage on 2026-11-27, and which change since lets it through is not traced
+_NEAR_AXIS_CIRCULAR_VIEW = (224097057, 1.1466, 0.2132, 0.0184, (-0.0164, -0.1358))
+
+
 @pytest.mark.xfail(strict=True, reason="known wrong ids: circular217 single views under sharp presses off the axis")
-@pytest.mark.parametrize("seed, sigma, lateral, rate, centre", _OFF_AXIS_CIRCULAR_VIEWS)
+@pytest.mark.parametrize("seed, sigma, lateral, rate, centre", [*_OFF_AXIS_CIRCULAR_VIEWS, _NEAR_AXIS_CIRCULAR_VIEW])
 def test_no_wrong_id_in_a_circular_view_pressed_sharply_off_the_axis(seed, sigma, lateral, rate, centre):
     """The property on circular views the benchmark's presses do not reach: no wrong id (each view reads
     195-210 of its markers, one wrong)."""
