@@ -513,9 +513,7 @@ def test_no_wrong_id_where_a_prediction_is_extrapolated_towards_a_press_tip(seed
 # with both competing-blob reaches): 6 wrong ids in 6 views, each a slot near the tip whose marker is
 # missing (or, in the second and fourth, present but crowded 0.5-0.9 of the median separation from its
 # neighbours) given to another blob 0.40-0.75 separations from the marker's true position: a spurious
-# blob (first four) or its outer neighbour's pin, slot 210 read as 198 (last two). Nothing competes for
-# the slot there, and the local spacing is ~0.5-0.8 of the median, so the blob sits about where a
-# displaced pin would: known wrong ids, kept here so that a rule which withdraws them shows.
+# blob (first four) or its outer neighbour's pin, slot 210 read as 198 (last two).
 _MISSING_SLOT_VIEWS = [(2161590097, "hexagon217_sep180", 1.0517, 0.3463, 0.0419),
                        (2361457184, "square121", 2.4059, 0.3268, 0.0726),
                        (594499511, "hexagon217_sep180", 2.1096, 0.4038, 0.0614),
@@ -527,6 +525,12 @@ _MISSING_SLOT_VIEWS = [(2161590097, "hexagon217_sep180", 1.0517, 0.3463, 0.0419)
 _NEAR_PREDICTION_VIEWS = [(1218274663, "square121", 1.1246, 0.3664, 0.0937),
                           (498893891, "hexagon127", 1.2151, 0.1206, 0.0271),
                           (4090610520, "hexagon217_sep180", 1.3734, 0.1955, 0.0996)]
+# Four of them stay wrong: the slot's marker missing, nothing else within a separation of its prediction,
+# and the blob that takes it where a displaced pin would sit (both square121 views, hexagon217_sep180); and
+# the centre of a hexagon127 view whose six neighbours fit an affine map to 0.012 separations, with a
+# spurious blob 0.007 from the prediction and the deepest pin of the press 0.27 off it (a bend the
+# neighbourhood does not show).
+_UNDECIDED_SLOT_VIEWS = [_MISSING_SLOT_VIEWS[1], _MISSING_SLOT_VIEWS[3], *_NEAR_PREDICTION_VIEWS[:2]]
 # one more such view, in which ring coding read 174 of 196 markers, one wrong: the placements anchored
 # half-way out (``register_seed(spread=True)``, tried below 90 %) certify 182, and that reading, the
 # largest, leaves the slot open. The slot's case is not settled by a rule, only outread.
@@ -555,11 +559,21 @@ def test_an_interior_id_held_by_two_identified_neighbours_is_withdrawn():
     assert REASONS[R_FEW] == dict(zip(coding.unmatched_ids.tolist(), coding.unmatched_reasons))[207]
 
 
-@pytest.mark.xfail(strict=True, reason="known wrong ids: a missing (or crowded) slot near a sharp press tip "
-                   "taken by a blob 0.4-0.75 separations off its marker, with nothing competing for it")
-@pytest.mark.parametrize("seed, name, sigma, lateral, rate", [*_MISSING_SLOT_VIEWS, *_NEAR_PREDICTION_VIEWS])
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate",
+                         [v for v in (*_MISSING_SLOT_VIEWS, *_NEAR_PREDICTION_VIEWS) if v not in _UNDECIDED_SLOT_VIEWS])
 def test_no_wrong_id_where_a_slot_near_the_tip_lost_its_marker(seed, name, sigma, lateral, rate):
-    """The property above on views a wider search drew: no wrong id."""
+    """Near a sharp tip the neighbourhood bends, and the bend its leave-one-out residuals show displaces
+    the slot's own pin too: a free blob within the growth gate widened by that bend (as far as the bend
+    may displace the pin) is a rival for the slot, which the certified reading leaves open
+    (``certify._unrivalled``). No wrong id, most of the view read."""
+    _assert_no_wrong_id_in_scope(seed, name, sigma, lateral, rate)
+
+
+@pytest.mark.xfail(strict=True, reason="known wrong ids: a slot near a sharp press tip whose marker is missing "
+                   "(or displaced by a bend its neighbours do not show) taken by the one blob near its prediction")
+@pytest.mark.parametrize("seed, name, sigma, lateral, rate", _UNDECIDED_SLOT_VIEWS)
+def test_no_wrong_id_where_nothing_competes_for_a_slot_near_the_tip(seed, name, sigma, lateral, rate):
+    """The property above on the four views no rule of a single view settles: no wrong id."""
     pts, truth, in_scope = _pressed_view_with_defects(seed, name, sigma, lateral, rate)
     assert in_scope
     assert _wrong(code_rings(_blobs(pts), DESIGNS[name]).ids, truth) == 0
@@ -567,7 +581,7 @@ def test_no_wrong_id_where_a_slot_near_the_tip_lost_its_marker(seed, name, sigma
 
 # circular217_dome views of a search of sharper and farther off-axis presses than the identification
 # benchmark's (5,000 draws: sigma 1-5 mm, centre up to 6 mm off the axis, lateral bulge 0-0.6, 0-10 % missing
-# and spurious blobs; 3,881 in scope, 21.9 % of their markers identified): one wrong id in each
+# and spurious blobs; 3,881 in scope, 21.9 % of their markers identified): one wrong id in each once
 _OFF_AXIS_CIRCULAR_VIEWS = [(4081341151, 1.0855, 0.1260, 0.0262, (2.0699, -1.4722)),
                             (4068980117, 2.3353, 0.4554, 0.0145, (-0.6122, -5.4672)),
                             (3263411013, 1.7301, 0.2942, 0.0065, (2.0789, -2.0529)),
@@ -577,17 +591,36 @@ _OFF_AXIS_CIRCULAR_VIEWS = [(4081341151, 1.0855, 0.1260, 0.0262, (2.0699, -1.472
                             (2958509890, 1.4968, 0.5346, 0.0050, (-0.7799, -4.3543))]
 
 
-# the seed-777 search below (4,000 draws, 3,206 in scope, 27.4 % coverage, re-run 2026-11-29) finds one wrong id
-# too, in a view pressed by a sigma 1.15 mm tip almost on the axis (209 ids, one wrong; the same at 6d2c121); it gave
-# none at 24.7 % coverage on 2026-11-27, and which change since lets it through is not traced
+# and a view of the seed-777 search below pressed by a sigma 1.15 mm tip almost on the axis, read from the rings
+# about its crowded centre: a spurious blob 0.09 separations from the centre slot's prediction took it, with the
+# centre pin 0.46 off (its three identified neighbours' residuals up to 0.29)
 _NEAR_AXIS_CIRCULAR_VIEW = (224097057, 1.1466, 0.2132, 0.0184, (-0.0164, -0.1358))
 
 
-@pytest.mark.xfail(strict=True, reason="known wrong ids: circular217 single views under sharp presses off the axis")
-@pytest.mark.parametrize("seed, sigma, lateral, rate, centre", [*_OFF_AXIS_CIRCULAR_VIEWS, _NEAR_AXIS_CIRCULAR_VIEW])
+# two of the seven stay wrong: an interior slot held by one identified immediate neighbour of six (a
+# circular pattern's interior ids are not held to three: a view whose centre is hidden keeps the markers
+# about the hole that way), given a blob 0.19 separations off its prediction, its own pin 0.69 off or absent
+_THINLY_HELD_CIRCULAR_VIEWS = [_OFF_AXIS_CIRCULAR_VIEWS[2], _OFF_AXIS_CIRCULAR_VIEWS[5]]
+
+
+@pytest.mark.parametrize("seed, sigma, lateral, rate, centre",
+                         [v for v in (*_OFF_AXIS_CIRCULAR_VIEWS, _NEAR_AXIS_CIRCULAR_VIEW)
+                          if v not in _THINLY_HELD_CIRCULAR_VIEWS])
 def test_no_wrong_id_in_a_circular_view_pressed_sharply_off_the_axis(seed, sigma, lateral, rate, centre):
-    """The property on circular views the benchmark's presses do not reach: no wrong id (each view reads
-    195-210 of its markers, one wrong)."""
+    """The property on circular views the benchmark's presses do not reach: no wrong id, and most of the
+    view read. Each once gave one wrong id: a blob on a slot's prediction in a bent neighbourhood while
+    the slot's pin stood just beyond the growth gate, now a rival that leaves the slot open."""
+    pts, truth, in_scope = _pressed_view_with_defects(seed, "circular217_dome", sigma, lateral, rate, centre)
+    assert in_scope
+    ids = code_rings(_blobs(pts), DESIGNS["circular217_dome"]).ids
+    assert _wrong(ids, truth) == 0
+    assert np.count_nonzero(ids >= 0) >= 0.85 * np.count_nonzero(truth >= 0)
+
+
+@pytest.mark.xfail(strict=True, reason="known wrong ids: an interior circular217 slot held by one identified "
+                   "neighbour near a sharp press off the axis")
+@pytest.mark.parametrize("seed, sigma, lateral, rate, centre", _THINLY_HELD_CIRCULAR_VIEWS)
+def test_no_wrong_id_in_a_thinly_held_circular_slot(seed, sigma, lateral, rate, centre):
     pts, truth, in_scope = _pressed_view_with_defects(seed, "circular217_dome", sigma, lateral, rate, centre)
     assert in_scope
     assert _wrong(code_rings(_blobs(pts), DESIGNS["circular217_dome"]).ids, truth) == 0
@@ -838,7 +871,7 @@ def test_tabulated_leave_one_out_fits_are_the_full_fits(name):
     for pts, slot_of in ((uv, np.arange(n)), (uv, swapped), (np.ascontiguousarray(uv[kept]), kept.copy())):
         blob_of = _blob_of(slot_of, n)
         order = np.arange(len(pts))
-        args = (lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0)
+        args = (lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0, slot_of < 0)
         st_tab = _consistency(pts, True, np.zeros(len(pts) + 1, np.int64), np.zeros(0, np.int64), slot_of,
                               blob_of, lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab, *args)
         st_full = _consistency(pts, True, np.zeros(len(pts) + 1, np.int64), np.zeros(0, np.int64), slot_of,

@@ -38,6 +38,11 @@ neighbours takes the nearest blob when it lies within :data:`GROW_GATE` local se
 least twice as near as the second-nearest blob (and 0.15 separations nearer), and no other free
 slot claims it; new ids then pass the same three tests.
 
+Last, a certified id is withdrawn when a **rival** blob could be its marker: where the neighbourhood
+bends (a sharp press), the bend its leave-one-out residuals show displaces the slot's own pin too, so
+a blob the reading leaves free (and no free slot claims) within the growth gate widened by that bend
+is as good a reading of the slot (``certify._unrivalled``; once, so that no withdrawal cascades).
+
 In a sequence (:class:`pipeline.vision.dtrc.DTRCTracker`) a fourth certification applies to the
 markers certified in the previous frame of the same view: **the frame-to-frame map**
 (:func:`frame_to_frame`). Where pins crowd (the crests of a narrow sine), the design-to-image map is
@@ -49,7 +54,7 @@ the frame-to-frame map disagree, neither reading is emitted there (see
 
 What remains possible, by construction: a blob that is not a marker but sits where a missing
 marker should be (within :data:`GROW_GATE` of its slot) is indistinguishable from that marker
-displaced, and takes its id. The identification benchmark therefore places spurious blobs at least
+displaced, and takes its id (so does a pin whose neighbours show no bend while it is displaced). The identification benchmark therefore places spurious blobs at least
 half a separation from the slots of missing markers (anywhere else, including next to present
 markers, is allowed).
 

@@ -10,7 +10,7 @@ import math
 import numba
 import numpy as np
 
-from pipeline.vision.identity.consistency import _consistency
+from pipeline.vision.identity.consistency import NO_RIVALS, _consistency
 from pipeline.vision.identity.centring import (_centre_xy, _no_better_centre, _ring_gather, annulus_holds,
                                                centre_rings_covered)
 from pipeline.vision.identity.constants import (ANCHOR_EVIDENCE, EVIDENCE_IMMEDIATE, GATE, R_INCONSISTENT, RING_CENTRE,
@@ -337,7 +337,7 @@ def _alternatives_excluded(pts, search, adj_ptr, adj_idx, slot_of, members, alt,
                     k += 1
         need = evidence - outside
         st = _consistency(pts, search, adj_ptr, adj_idx, alt_slot, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan,
-                          closed, pitch, gate, order, need)
+                          closed, pitch, gate, order, need, NO_RIVALS)
         bad = 0
         for b in members:
             if st[b] == R_INCONSISTENT:

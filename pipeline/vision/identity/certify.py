@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.vision.identity.anchoring import (_alternatives_excluded, _anchored, _beyond_hits, _centre_holds,
                                                 _components, _rotation_deg)
-from pipeline.vision.identity.consistency import _blob_of, _consistency, consistent
+from pipeline.vision.identity.consistency import _blob_of, _consistency, _statuses, consistent
 from pipeline.vision.identity.constants import (_NEED_SEARCH, AMBIGUITY_MARGIN, ANCHOR_EVIDENCE, BEYOND_HITS,
                                                 GATE, GROW_GATE, MIN_PATCH, R_AMBIGUOUS, SEAM_LONGER,
                                                 R_ANCHOR, R_FEW, R_NO_BLOB, R_OK, R_ROTATION)
@@ -81,12 +81,13 @@ def _whole_kernel(pts, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab,
             return False
         blob_of[s] = b
     order = np.arange(n)
+    rival = np.zeros(0, np.bool_)                  # every blob labelled: none is free
     search = False
     if fan[:, 0].max() < 0:
         # no fans (circular patterns): every test searches
         search = True
     st = _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
-                      pitch, gate, order, 0)
+                      pitch, gate, order, 0, rival)
     n_need = 0
     for b in range(n):
         if st[b] == _NEED_SEARCH:
@@ -103,7 +104,7 @@ def _whole_kernel(pts, adj_ptr, adj_idx, slot_of, xy, nbr, nbr2, loo_m, loo_tab,
                 need[k] = b
                 k += 1
         st = _consistency(pts, True, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
-                          pitch, gate, need, 0)
+                          pitch, gate, need, 0, rival)
         for b in need:
             if st[b] != 0:
                 return False
@@ -151,8 +152,44 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
     while True:
         slot_of, withdrawn = _certify_once(pts, slot_of, lat, reason, checked)
         if not withdrawn:
-            return slot_of
+            return _unrivalled(pts, slot_of, lat, reason)
         checked = False
+
+
+def _rivals(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> np.ndarray:
+    """The blobs that may be a labelled slot's own pin displaced by a bend (``rival`` of the consistency
+    test): those the proposal leaves free, but not one within the growth gate of a free slot's prediction,
+    which is that slot's pin (a blob the test itself frees later stays its slot's candidate too)."""
+    rival = slot_of < 0
+    if not rival.any() or not (slot_of >= 0).any():
+        return rival
+    pred, scale = _predict_free(pts, _blob_of(slot_of, len(lat.xy)), lat.xy, lat.nbr2, lat.pitch)
+    free = np.flatnonzero(scale > 0)
+    if len(free):
+        d, j = knn(pts, pred[free], 1)
+        rival[j[d[:, 0] <= GROW_GATE * scale[free], 0]] = False
+    return rival
+
+
+def _unrivalled(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray) -> np.ndarray:
+    """The certified reading ``slot_of`` without the ids a rival blob leaves open (reason ``R_AMBIGUOUS``):
+    near a sharp press the neighbourhood bends, and the bend its leave-one-out residuals show displaces the
+    slot's own pin too, so a free blob within the growth gate widened by that bend (as far as the bend may
+    displace the pin) is as good a reading of the slot as the labelled blob. Tested once on the certified
+    reading: the ids are withdrawn and nothing else, so no withdrawal cascades through its neighbours'
+    tests or the patch's anchoring (each withdrawn marker's neighbours were certified with it; the patch
+    is certified whole)."""
+    rival = _rivals(pts, slot_of, lat)
+    if not rival.any():
+        return slot_of
+    st = _statuses(pts, _adj(pts), slot_of, lat, rival=rival)
+    amb = np.flatnonzero(st == R_AMBIGUOUS)
+    if len(amb) == 0:
+        return slot_of
+    slot_of = slot_of.copy()
+    reason[slot_of[amb]] = R_AMBIGUOUS
+    slot_of[amb] = -1
+    return slot_of
 
 
 def _certify_once(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarray,

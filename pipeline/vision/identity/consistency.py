@@ -20,9 +20,13 @@ from pipeline.vision.identity.neighbours import _adj
 from pipeline.vision.nearest import nearest_in, y_order
 
 
+#: No blob competes for a slot beyond the growth gate (see ``rival`` of :func:`_loo_status`).
+NO_RIVALS = np.zeros(0, np.bool_)
+
+
 @numba.njit(cache=True, nogil=True)
 def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, fan, closed,
-                 pitch, gate, order, stop_after):
+                 pitch, gate, order, stop_after, rival):
     """Status of every labelled blob: 0 consistent, R_FEW too few neighbours, R_INCONSISTENT.
 
     The neighbourhood of a blob's slot is the identified slots of ``nbr2``; the blob itself and
@@ -74,7 +78,7 @@ def _consistency(pts, search, adj_ptr, adj_idx, slot_of, blob_of, xy, nbr, nbr2,
             # the competed slots are withdrawn
             ext = EXTRAPOLATION_REACH if fan[s, 0] >= 0 else 0.0
             st = _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate,
-                             slots, blobs, acc, two, two_d2, K, by_y, ys, sweep, ext)
+                             slots, blobs, acc, two, two_d2, K, by_y, ys, sweep, ext, rival)
         status[b] = st
         if st == R_INCONSISTENT:
             n_bad += 1
@@ -91,7 +95,7 @@ def _search(pts, x, y, two, two_d2, by_y, ys, sweep):
 
 @numba.njit(cache=True, nogil=True)
 def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_tab, pitch, gate, slots, blobs, acc,
-                two, two_d2, K, by_y, ys, sweep, extrapolation):
+                two, two_d2, K, by_y, ys, sweep, extrapolation, rival):
     """The leave-one-out test of :func:`_consistency` for blob ``b`` labelled ``s``: its status.
 
     The immediate design neighbours ``nbr[s]`` are the first entries of ``nbr2[s]`` (both sorted
@@ -106,7 +110,12 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
     :data:`SETTLED` and :data:`STANDS_OUT` times the largest residual of its immediate neighbours),
     or when the free blob is no farther off than a bend of that neighbourhood may displace the slot's
     own pin (:data:`DISPLACED_REACH` times that residual). Decided last, so that a blob failing a
-    neighbour's residual stays R_INCONSISTENT, the evidence the anchoring test counts."""
+    neighbour's residual stays R_INCONSISTENT, the evidence the anchoring test counts.
+
+    ``rival`` (per blob; :data:`NO_RIVALS` for none): blobs that may be the slot's own pin displaced by
+    the bend. Such a blob competes within :data:`GROW_GATE` widened by the largest residual of the
+    immediate neighbours, as far as :data:`DISPLACED_REACH` times it (the certified reading's last test,
+    ``certify._unrivalled``; the other callers pass none and keep the growth gate)."""
     n_design = _row_length(nbr, s)
     slots[0] = s
     blobs[0] = b
@@ -123,8 +132,10 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
     # the whole design neighbourhood identified: the design half of each fit is tabulated
     whole = n_imm == n_design and m == loo_m[s]
     d1 = 0.0
+    reach = GROW_GATE
     d_free = 0.0                            # the second-nearest blob's distance from the prediction
     free_near = False
+    bent_rival = False
     r_max = 0.0                             # largest residual of an immediate neighbour
     _fit_sums(xy, pts, slots, blobs, m, ox, oy, ou, ov, acc)
     for q in range(n_imm + 1):              # the blob itself and its immediate neighbours
@@ -168,7 +179,8 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
                     cx += xy[slots[k], 0] - ox
                     cy += xy[slots[k], 1] - oy
                 reach += extrapolation * math.hypot(cx, cy) / (n_imm * pitch)
-            free_near = d2 <= reach and slot_of[two[1]] < 0
+            free_near = slot_of[two[1]] < 0
+            bent_rival = len(rival) > 0 and rival[two[1]]
             d_free = d2
             if n_imm <= n_design - 2:
                 # a neighbourhood with a wide gap extrapolates its prediction: a second blob closer
@@ -176,6 +188,11 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
                 _search(pts, pts[b, 0], pts[b, 1], two, two_d2, by_y, ys, sweep)
                 if math.sqrt(two_d2[1]) < CLOSE_BLOB * scale:
                     return R_AMBIGUOUS
+    # the bend that shows in the neighbours' residuals displaces the slot's own pin too: a rival blob
+    # competes within the growth gate widened by it, as far as that bend may displace the pin
+    if bent_rival:
+        reach = max(reach, min(reach + r_max, DISPLACED_REACH * r_max))
+    free_near = free_near and d_free <= reach
     if free_near and (n_imm <= n_design - 2 or d1 > max(SETTLED, STANDS_OUT * r_max)
                       or d_free <= DISPLACED_REACH * r_max):
         return R_AMBIGUOUS
@@ -189,18 +206,18 @@ def _blob_of(slot_of: np.ndarray, n_slots: int) -> np.ndarray:
     return b
 
 
-def _statuses(pts, adj, slot_of, lat, order=None):
+def _statuses(pts, adj, slot_of, lat, order=None, rival=NO_RIVALS):
     """:func:`_consistency` of every labelled blob; blob searches run only for the blobs whose test
     needs one (usually none does: intact fans are checked on the Delaunay triangulation)."""
     blob_of = _blob_of(slot_of, len(lat.xy))
     order = np.arange(len(slot_of)) if order is None else order
     search = not lat.translation_lattice          # no fans: every test searches
-    st = _consistency(pts, search, adj[0], adj[1], slot_of, blob_of,
-                      lat.xy, lat.nbr, lat.nbr2, lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0)
+    st = _consistency(pts, search, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2, lat.loo_m,
+                      lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, order, 0, rival)
     need = np.flatnonzero(st == _NEED_SEARCH)
     if len(need):
         st2 = _consistency(pts, True, adj[0], adj[1], slot_of, blob_of, lat.xy, lat.nbr, lat.nbr2,
-                           lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, need, 0)
+                           lat.loo_m, lat.loo_tab, lat.fan, lat.fan_closed, lat.pitch, GATE, need, 0, rival)
         st[need] = st2[need]
     return st
 

@@ -35,6 +35,10 @@ STANDS_OUT = 2.0
 #: prediction, up to 4.3 times their largest residual, while a spurious blob within 0.04 of the
 #: prediction took its id. Larger factors reach the residuals that detector jitter alone leaves
 #: (8 cost 1.3 points of coverage with 10 % missing and spurious blobs; 5 cost 0.2).
+#: The same bend widens the window in which a free blob rivals the labelled one, beyond the growth gate
+#: by the largest residual (and no farther than this many times it), once the reading is certified
+#: (``certify._unrivalled``): near a sharp tip the slot's own pin stood 0.45-0.46 separations off the
+#: prediction (its neighbours' residuals up to 0.20-0.29) while a spurious blob 0.09-0.12 off took its id.
 DISPLACED_REACH = 5.0
 #: A marker with two or more unidentified design neighbours (its prediction is extrapolated across
 #: the gap) is ambiguous when another blob lies within this many local separations of it: a spurious

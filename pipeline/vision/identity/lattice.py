@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.vision.identity.consistency import _blob_of, _consistency
+from pipeline.vision.identity.consistency import NO_RIVALS, _blob_of, _consistency
 from pipeline.vision.identity.constants import (BEYOND_EMPTY, FAN_MAX_GAP_DEG, GATE, IMMEDIATE_PITCHES, LATTICE_STEP,
                                                 MIN_PATCH, NEIGHBOURHOOD_PITCHES, R_INCONSISTENT, ROTATION_MARGIN_DEG,
                                                 SLOT_MATCH_SHIFT, SLOT_MATCH_SYMMETRY)
@@ -188,7 +188,7 @@ def lattice_of(design) -> Lattice:
         u, cnt = np.unique(g[g >= 0], return_counts=True)
         g[np.isin(g, u[cnt > 1])] = -1
         st = _consistency(xy, True, np.zeros(n + 1, np.int64), np.zeros(0, np.int64), g, _blob_of(g, n), xy,
-                          nbr, nbr2, loo_m, loo_tab, fan, fan_closed, pitch, GATE, np.arange(n), 0)
+                          nbr, nbr2, loo_m, loo_tab, fan, fan_closed, pitch, GATE, np.arange(n), 0, NO_RIVALS)
         first[a, st == R_INCONSISTENT] = 0
     outer_ring = np.flatnonzero(layers == layers.max()).astype(np.int64)
     lat = Lattice(xy, pitch, nbr, nbr2, alpha, alt, tuple(names),
