@@ -597,6 +597,30 @@ _OFF_AXIS_CIRCULAR_VIEWS = [(4081341151, 1.0855, 0.1260, 0.0262, (2.0699, -1.472
 _NEAR_AXIS_CIRCULAR_VIEW = (224097057, 1.1466, 0.2132, 0.0184, (-0.0164, -0.1358))
 
 
+def test_a_rival_displaced_by_the_bend_leaves_the_centre_open(monkeypatch):
+    """The near-axis view: the certified reading gives the centre slot to a spurious blob 0.09 separations from
+    its prediction, while the centre pin stands 0.46 off, beyond the growth gate, with its three identified
+    neighbours' residuals up to 0.29. That pin is a rival within the bend-widened gate: the centre is left open
+    with that reason and nothing else is withdrawn (without the test, the same reading with one wrong id)."""
+    import importlib
+
+    from pipeline.vision.identity.constants import R_AMBIGUOUS
+
+    certify_module = importlib.import_module("pipeline.vision.identity.certify")
+    design = DESIGNS["circular217_dome"]
+    seed, sigma, lateral, rate, centre = _NEAR_AXIS_CIRCULAR_VIEW
+    pts, truth, _ = _pressed_view_with_defects(seed, "circular217_dome", sigma, lateral, rate, centre)
+    coding = code_rings(_blobs(pts), design)
+    centre_id = design.marker_count - 1
+    assert REASONS[R_AMBIGUOUS] == dict(zip(coding.unmatched_ids.tolist(), coding.unmatched_reasons))[centre_id]
+    assert _wrong(coding.ids, truth) == 0 and centre_id not in coding.ids.tolist()
+    monkeypatch.setattr(certify_module, "_unrivalled", lambda pts, slot_of, lat, reason: slot_of)
+    unguarded = code_rings(_blobs(pts), design).ids
+    wrong = (unguarded >= 0) & (unguarded != truth)
+    assert unguarded[wrong].tolist() == [centre_id] and truth[wrong].tolist() == [-1]
+    assert np.count_nonzero(unguarded >= 0) == np.count_nonzero(coding.ids >= 0) + 1
+
+
 # two of the seven stay wrong: an interior slot held by one identified immediate neighbour of six (a
 # circular pattern's interior ids are not held to three: a view whose centre is hidden keeps the markers
 # about the hole that way), given a blob 0.19 separations off its prediction, its own pin 0.69 off or absent
