@@ -158,8 +158,8 @@ def certify(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice, reason: np.ndarr
 
 def _rivals(pts: np.ndarray, slot_of: np.ndarray, lat: Lattice) -> np.ndarray:
     """The blobs that may be a labelled slot's own pin displaced by a bend (``rival`` of the consistency
-    test): those the proposal leaves free, but not one within the growth gate of a free slot's prediction,
-    which is that slot's pin (a blob the test itself frees later stays its slot's candidate too)."""
+    test): those the reading leaves free, but not one within the growth gate of a free slot's prediction
+    (that slot's own pin, crowded there)."""
     rival = slot_of < 0
     if not rival.any() or not (slot_of >= 0).any():
         return rival
