@@ -132,7 +132,7 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
     # the whole design neighbourhood identified: the design half of each fit is tabulated
     whole = n_imm == n_design and m == loo_m[s]
     d1 = 0.0
-    reach = GROW_GATE
+    reach = GROW_GATE                       # where a free blob competes (widened below)
     d_free = 0.0                            # the second-nearest blob's distance from the prediction
     free_near = False
     bent_rival = False
@@ -169,7 +169,6 @@ def _loo_status(pts, search, b, s, slot_of, blob_of, xy, nbr, nbr2, loo_m, loo_t
             d2 = math.sqrt(two_d2[1]) / scale
             if two[0] != b or d2 < 2 * d1 or d2 - d1 < AMBIGUITY_MARGIN:
                 return R_AMBIGUOUS
-            reach = GROW_GATE
             if n_imm <= n_design - 2:
                 # the prediction is extrapolated from one side of the slot: its error grows with the
                 # offset of the identified immediate neighbours' centroid from the slot
