@@ -27,11 +27,21 @@ frame-to-frame map, not from the certainty rule, which such a view fails as a wh
 then misplaces a marker in space by most of a separation, but its previous point moved by its neighbours' mean
 motion does not. A pair that lies that close to where the marker's motion puts it (:data:`MOTION_GATE`), passes
 the same one-reading tests and is held by identified neighbours in the receiving view is taken on that evidence.
+A marker the frame did not pair (one view dropped its blob) keeps a place for the next frames, carried by its
+neighbours' motion (:func:`carry`, :data:`CARRY_FRAMES`), so that it is predicted by its motion when it is seen
+again.
+
+The other view also settles what one view cannot: a spurious blob near a marker whose neighbourhood is bent or
+seen from one side leaves that view's reading ambiguous ("two blobs near its predicted position"), and the
+certainty rule refuses the proposal for the same reason. A blob whose ray cannot meet the marker's ray from the
+other view inside the gel is not that marker, whatever the neighbourhood predicts; with every such blob near the
+proposal set aside, the receiving view's rule is applied once more and decides (:data:`SETTLE_REACH`). A blob whose
+ray does meet it (one along the epipolar line) keeps the slot open.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -40,8 +50,10 @@ from pipeline.design import SensorDesign
 from pipeline.types import Blobs
 from pipeline.vision.dtrc.proposals import held
 from pipeline.vision.identity import certify, lattice_of
+from pipeline.vision.identity.constants import R_AMBIGUOUS
+from pipeline.vision.nearest import nearest_other_distances
 
-__all__ = ["across_views", "MAX_PAIRS"]
+__all__ = ["across_views", "carry", "Places", "MAX_PAIRS"]
 
 #: Candidate pairs (free blobs of one view × markers only the other view identified) tested at most
 #: (128 × 128, ~10 ms a round on this machine's core); beyond, the view is left as it is (a view that
@@ -64,6 +76,17 @@ XYZ_GATE = 0.5
 #: passes: along the rays the next marker lies 4-6 mm off, and a blob that passes lies within ~0.1 separation
 #: of where the marker itself projects.
 MOTION_GATE = 0.3
+#: A proposal the receiving view refuses only because a free blob stands near it (two blobs near its
+#: predicted position, ``R_AMBIGUOUS``) is settled by the stereo geometry where every free blob within this many
+#: of the view's blob spacings of it has rays that cannot meet the marker's ray in the other view inside the gel
+#: (within the stereo check's gap): such a blob is not that marker whatever the neighbourhood predicts, and
+#: the rule is applied again without it (a blob of the view's own one-view ambiguity lies within the growth
+#: gate widened by the bend, well inside a spacing).
+SETTLE_REACH = 1.0
+#: Frames a marker's place in space is carried by its neighbours' motion after its last checked pair
+#: (:func:`carry`), as a view's lost markers are carried for re-acquisition
+#: (:data:`~pipeline.vision.identity.reacquire.REACQUIRE_FRAMES`).
+CARRY_FRAMES = 2
 
 Locate = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -87,8 +110,14 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
     space = np.full((len(lat.xy), 3), np.nan)
     space[both[ok]] = xyz[ok]
     before = np.full_like(space, np.nan)
+    measured = before                      # the previous frame's points of checked pairs only
     if previous is not None and len(previous.ids):
         before[previous.ids] = previous.xyz_mm
+        age = getattr(previous, "age", None)
+        if age is not None and np.any(age > 0):
+            measured = before.copy()
+            measured[previous.ids[age > 0]] = np.nan
+    before = (before, measured)
     left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, before, locate)
     right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, before, locate)
     return (left, lrest), (right, rrest)
@@ -121,21 +150,23 @@ def _neighbour_sets(i: int, lat, *placed: np.ndarray):
             yield nb
 
 
-def _predicted(want: np.ndarray, lat, space: np.ndarray, before: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _predicted(want: np.ndarray, lat, space: np.ndarray, before: tuple) -> tuple[np.ndarray, np.ndarray]:
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
     than three of them, not on one line, have a 3-D point), and (len(want),) whether that is by its motion:
-    where the previous frame placed the marker (``before``, NaN where not) and three of its neighbours in
-    both frames, its previous point moved by their mean motion; otherwise a local affine map of the design
+    where the previous frame placed the marker (``before[0]``, NaN where not: a checked pair's point or a
+    place carried by :func:`carry`) and three of its neighbours in both frames (``before[1]``: checked pairs'
+    points only), its previous place moved by their mean motion; otherwise a local affine map of the design
     plane, fitted to its immediate neighbours or, where those are too few, to the neighbours within 2.5
     pitches (over which a press bends the skin more: a bent fit misses the marker's point, and no pair is
     proposed)."""
     out = np.full((len(want), 3), np.nan)
     moved = np.zeros(len(want), bool)
+    before, measured = before
     for k, i in enumerate(want.tolist()):
         if np.isfinite(before[i, 0]):
-            nb = next(_neighbour_sets(i, lat, space, before), None)
+            nb = next(_neighbour_sets(i, lat, space, measured), None)
             if nb is not None:
-                out[k], moved[k] = before[i] + (space[nb] - before[nb]).mean(axis=0), True
+                out[k], moved[k] = before[i] + (space[nb] - measured[nb]).mean(axis=0), True
                 continue
         for nb in _neighbour_sets(i, lat, space):
             A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
@@ -180,8 +211,11 @@ def _complete(pts: np.ndarray, coding, want: np.ndarray, other_pts: np.ndarray, 
     new = np.flatnonzero((proposal >= 0) & (ids < 0))
     if len(new) == 0:
         return coding
-    certified = certify(pts, proposal, lat, np.zeros(len(lat.xy), np.int64))
-    took = new[(certified[new] == proposal[new]) | by_motion[new]]
+    reason = np.zeros(len(lat.xy), np.int64)
+    certified = certify(pts, proposal, lat, reason)
+    certified, open_ = _resolved(pts, proposal, certified, reason, new, other_pts[index[proposal[new]]], is_left, lat,
+                                 locate)
+    took = new[(certified[new] == proposal[new]) | (by_motion[new] & ~open_[new])]
     if len(took):
         # held by identified neighbours in this view: on a translation lattice every id (a proposal the rule
         # certified too), elsewhere those placed by their motion alone
@@ -204,3 +238,92 @@ def _complete(pts: np.ndarray, coding, want: np.ndarray, other_pts: np.ndarray, 
                    messages=coding.messages + (f"the other view's ids certified {len(took)} more marker(s) through the "
                                                "stereo geometry",))
 
+
+def _resolved(pts: np.ndarray, proposal: np.ndarray, certified: np.ndarray, reason: np.ndarray, new: np.ndarray,
+              other_px: np.ndarray, is_left: bool, lat, locate: Locate) -> tuple[np.ndarray, np.ndarray]:
+    """``certified`` (the receiving view's certainty rule on ``proposal``) with the proposed ids it refused only as
+    ambiguous certified again where the stereo geometry settles the ambiguity (:data:`SETTLE_REACH`): the free blobs
+    near each such proposal whose rays cannot meet the marker's ray in the other view (``other_px``, per blob of
+    ``new``) inside the gel are set aside, and the rule is applied once more to the rest of the view. Only those
+    proposals are taken from that second pass. Also returns, per blob, the proposals whose ambiguity the geometry
+    leaves open (a free blob near it meets the marker's ray inside the gel too): not taken by their motion either,
+    which alone would then choose between two blobs the marker may be (a sharp tip dragged across the skin moves
+    the marker under it unlike its neighbours, onto a spurious blob beside it)."""
+    unsettled = np.zeros(len(pts), bool)
+    amb = new[(certified[new] < 0) & (reason[np.maximum(proposal[new], 0)] == R_AMBIGUOUS)]
+    if len(amb) == 0:
+        return certified, unsettled
+    free = np.flatnonzero(proposal < 0)
+    if len(free) == 0:
+        return certified, unsettled
+    other = dict(zip(new.tolist(), other_px))
+    spacing = float(np.median(nearest_other_distances(pts)))
+    aside = np.zeros(len(pts), bool)
+    keep = np.zeros(len(pts), bool)          # a free blob that could be one of the markers it is near
+    for b in amb.tolist():
+        c = free[np.hypot(*(pts[free] - pts[b]).T) <= SETTLE_REACH * spacing]
+        if len(c) == 0:
+            continue
+        o = np.repeat(other[b][None, :], len(c), axis=0)
+        ok, _ = locate(*((pts[c], o) if is_left else (o, pts[c])), np.full(len(c), proposal[b], np.int64))
+        keep[c[ok]] = True
+        aside[c[~ok]] = True
+        unsettled[b] = ok.any()
+    aside &= ~keep
+    if not aside.any():
+        return certified, unsettled
+    rest = np.flatnonzero(~aside)
+    again = np.full(len(pts), -1, np.int64)
+    again[rest] = certify(pts[rest], proposal[rest], lat, np.zeros(len(lat.xy), np.int64))
+    settled = amb[(again[amb] == proposal[amb]) & ~unsettled[amb]]
+    if len(settled) == 0:
+        return certified, unsettled
+    certified = certified.copy()
+    certified[settled] = proposal[settled]
+    return certified, unsettled
+
+
+@dataclass(frozen=True)
+class Places:
+    """Markers in space after a frame, for the next frame's predictions by motion: ``ids`` (N,), ``xyz_mm``
+    (N, 3) and ``age`` (N,): 0 for the frame's checked pairs, k for a place carried k frames since the marker's
+    last checked pair (:func:`carry`)."""
+
+    ids: np.ndarray
+    xyz_mm: np.ndarray
+    age: np.ndarray
+
+
+def carry(previous: Places | None, cloud, design: SensorDesign) -> Places:
+    """The frame's checked pairs ``cloud`` (``.ids``, ``.xyz_mm``) as :class:`Places`, with the markers ``previous``
+    placed and the frame did not pair carried on (:data:`CARRY_FRAMES`): each moved by the mean motion of its design
+    neighbours that are checked pairs in both (three at least: immediate neighbours, else those within 2.5
+    pitches). A view drops a marker for a frame (a glare spot, a spurious blob merged with it), and without a
+    place the next frame has only the design's affine map of its neighbours to propose it with, which a crest
+    that crowds the pins bends by most of a separation."""
+    ids = np.asarray(cloud.ids, np.int64)
+    xyz = np.asarray(cloud.xyz_mm, np.float64)
+    age = np.zeros(len(ids), np.int64)
+    if previous is None or len(previous.ids) == 0 or len(ids) == 0:
+        return Places(ids, xyz, age)
+    paired = np.zeros(max(int(ids.max()), int(previous.ids.max())) + 1, bool)
+    paired[ids] = True
+    go = ~paired[previous.ids] & (previous.age < CARRY_FRAMES)
+    if not go.any():                        # every marker placed before is paired again (a clean frame)
+        return Places(ids, xyz, age)
+    lat = lattice_of(design)
+    n = len(lat.xy)
+    now, then = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    now[ids] = xyz
+    measured = previous.age == 0
+    then[previous.ids[measured]] = previous.xyz_mm[measured]
+    add_ids, add_xyz, add_age = [], [], []
+    for i, p, a in zip(previous.ids[go].tolist(), previous.xyz_mm[go], previous.age[go].tolist()):
+        nb = next(_neighbour_sets(i, lat, now, then), None)
+        if nb is not None:
+            add_ids.append(i)
+            add_xyz.append(p + (now[nb] - then[nb]).mean(axis=0))
+            add_age.append(a + 1)
+    if not add_ids:
+        return Places(ids, xyz, age)
+    return Places(np.r_[ids, add_ids], np.vstack([xyz, add_xyz]), np.r_[age, add_age])

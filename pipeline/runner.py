@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.design import SensorDesign
-from pipeline.cross_view import across_views
+from pipeline.cross_view import across_views, carry
 from pipeline.errors import UserError
 from pipeline.geometry.refraction import RefractionError, correct_exact, correct_linear, project_through_stack
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
@@ -184,7 +184,7 @@ class Reconstructor:
         self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
         self._stereo_reasons: dict[int, str] = {}
-        self._last_cloud: MarkerCloud | None = None      # the previous frame's checked pairs in space
+        self._last_cloud = None      # the previous frame's markers in space (cross_view.Places)
         if isinstance(reference, MarkerCloud):
             self._reference = reference
         elif isinstance(reference, StereoFrame):
@@ -274,7 +274,7 @@ class Reconstructor:
         out = self._stereo_check(matches)
         if len(out[1]) and hasattr(self._tracker, "forget"):
             self._tracker.forget(out[1])
-        self._last_cloud = out[2]
+        self._last_cloud = carry(self._last_cloud, out[2], self.design)
         return out
 
     def identify(self, left: Blobs, right: Blobs) -> MarkerMatches:
