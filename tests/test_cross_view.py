@@ -376,18 +376,5 @@ def test_no_wrong_pair_under_a_sharp_tip_dragged_across_the_skin():
     open), and the stereo check keeps the pair: its rays meet the right view's marker 93 inside the gel. The
     benchmark's sharpest press (σ² = 5/3, σ = 1.29 mm) is not slid; the tracking experiment's slides are under
     letters, not a point."""
-    from benchmarks.experiments.identification import score_pairs, stereo_views_with_defects
-
-    design = load_design("hexagon217_sep180")
-    calib = nominal_calibration(design)
-    rng = np.random.default_rng(1748886452)
-    sigma, (cx, cy), slide, rate, lateral = (rng.uniform(1.0, 6.0), rng.uniform(-5, 5, 2), rng.uniform(0, 2.0, 2),
-                                             rng.uniform(0, 0.1), rng.uniform(0, 0.5))
-    rec = Reconstructor(design, calib, view_threads=1)
-    wrong = []
-    for k in range(1, 6):
-        xyz = gaussian_press_markers(design, float(k), sigma_mm=sigma, centre_xy_mm=(cx + slide[0] * k, cy + slide[1] * k),
-                                     lateral=lateral)
-        sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, rate, 0.2)
-        wrong.append(score_pairs(rec.identify(_blobs(sides[0][0]), _blobs(sides[1][0])), sides)["wrong"])
-    assert sum(wrong) == 0, (sigma, wrong)
+    wrong = _dragged_tip_sequence(load_design("hexagon217_sep180"), 1748886452)
+    assert sum(wrong) == 0, wrong
