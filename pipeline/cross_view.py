@@ -150,6 +150,13 @@ def _neighbour_sets(i: int, lat, *placed: np.ndarray):
             yield nb
 
 
+def _moved(i: int, place: np.ndarray, lat, now: np.ndarray, then: np.ndarray) -> np.ndarray | None:
+    """Marker ``i``'s ``place`` in the frame before moved by the mean motion of its design neighbours placed in both
+    frames (``then`` -> ``now``, (N, 3), NaN where not; three at least, :func:`_neighbour_sets`); None where too few."""
+    nb = next(_neighbour_sets(i, lat, now, then), None)
+    return None if nb is None else place + (now[nb] - then[nb]).mean(axis=0)
+
+
 def _predicted(want: np.ndarray, lat, space: np.ndarray, before: tuple) -> tuple[np.ndarray, np.ndarray]:
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
     than three of them, not on one line, have a 3-D point), and (len(want),) whether that is by its motion:
@@ -164,9 +171,9 @@ def _predicted(want: np.ndarray, lat, space: np.ndarray, before: tuple) -> tuple
     before, measured = before
     for k, i in enumerate(want.tolist()):
         if np.isfinite(before[i, 0]):
-            nb = next(_neighbour_sets(i, lat, space, measured), None)
-            if nb is not None:
-                out[k], moved[k] = before[i] + (space[nb] - measured[nb]).mean(axis=0), True
+            p = _moved(i, before[i], lat, space, measured)
+            if p is not None:
+                out[k], moved[k] = p, True
                 continue
         for nb in _neighbour_sets(i, lat, space):
             A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
@@ -319,10 +326,10 @@ def carry(previous: Places | None, cloud, design: SensorDesign) -> Places:
     then[previous.ids[measured]] = previous.xyz_mm[measured]
     add_ids, add_xyz, add_age = [], [], []
     for i, p, a in zip(previous.ids[go].tolist(), previous.xyz_mm[go], previous.age[go].tolist()):
-        nb = next(_neighbour_sets(i, lat, now, then), None)
-        if nb is not None:
+        q = _moved(i, p, lat, now, then)
+        if q is not None:
             add_ids.append(i)
-            add_xyz.append(p + (now[nb] - then[nb]).mean(axis=0))
+            add_xyz.append(q)
             add_age.append(a + 1)
     if not add_ids:
         return Places(ids, xyz, age)

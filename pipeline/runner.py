@@ -184,7 +184,7 @@ class Reconstructor:
         self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
         self._stereo_reasons: dict[int, str] = {}
-        self._last_cloud = None      # the previous frame's markers in space (cross_view.Places)
+        self._last_places = None      # the previous frame's markers in space (cross_view.Places)
         if isinstance(reference, MarkerCloud):
             self._reference = reference
         elif isinstance(reference, StereoFrame):
@@ -267,14 +267,14 @@ class Reconstructor:
         if codings is None:
             codings = (self._tracker.code_view(0, left), self._tracker.code_view(1, right))
         return self._tracker.commit(left, right, across_views((left, right), codings, self.design, self._locate,
-                                                              self._last_cloud))
+                                                              self._last_places))
 
     def _checked(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud, tuple]:
         """:meth:`_stereo_check`, and the rejected ids not carried into the next frame as certain."""
         out = self._stereo_check(matches)
         if len(out[1]) and hasattr(self._tracker, "forget"):
             self._tracker.forget(out[1])
-        self._last_cloud = carry(self._last_cloud, out[2], self.design)
+        self._last_places = carry(self._last_places, out[2], self.design)
         return out
 
     def identify(self, left: Blobs, right: Blobs) -> MarkerMatches:
