@@ -103,6 +103,65 @@ def test_every_marker_with_a_complete_neighbourhood_beside_an_occluded_patch_is_
         assert set(complete.tolist()) <= set(ids[ids >= 0].tolist()), seed
 
 
+def test_an_outer_row_beyond_an_occluded_patch_is_read_along_itself():
+    """square121 with the patch over its lower-left quadrant (57-63, 85-89, 104-108, 117, 118 hidden): the outer
+    ring beyond it, 22-28 round the corner 25, is a strip one marker wide with the inner corner 60 beside it. Its
+    markers have identified neighbours along the strip only, so the certainty rule has no map to test them
+    against; read step by step along the column from 19-21 and along the row from 29-31, the strip is identified,
+    the corner (whose design neighbours are all visible) with it, none wrong."""
+    pts, truth, complete = _occluded_view("square121", 336)
+    coding = code_rings(_blobs(pts), DESIGNS["square121"])
+    assert _wrong(coding.ids, truth) == 0
+    assert set(range(22, 29)) <= set(coding.ids.tolist())
+    assert set(complete.tolist()) <= set(coding.ids.tolist())
+    assert any("along their rows" in m for m in coding.messages)
+
+
+def test_a_row_is_not_read_on_where_its_steps_change():
+    """The same view's reading with the strip left open (the rule's own verdict): ``extend_rows`` reads all
+    of it. With marker 19 moved a third of a step down the column (19-20 shorter than 20-21, as where pins crowd
+    into a crest) the column no longer continues evenly, and 22-24, which only the column reaches, stay open;
+    the row from 29-31 still reads 25-28."""
+    from pipeline.vision.identity import R_NO_BLOB
+    from pipeline.vision.identity.rows import extend_rows
+
+    lat = lattice_of(DESIGNS["square121"])
+    pts, truth, _ = _occluded_view("square121", 336)
+    strip = np.isin(truth, np.arange(22, 29))
+    ids = np.where(strip, -1, truth)
+    reason = np.full(len(lat.xy), R_NO_BLOB)
+    read = extend_rows(pts, ids, lat, reason.copy())
+    np.testing.assert_array_equal(read, truth)
+    moved = pts.copy()
+    b19, b20 = np.flatnonzero(truth == 19)[0], np.flatnonzero(truth == 20)[0]
+    moved[b19] += (moved[b20] - moved[b19]) / 3.0
+    read = extend_rows(moved, ids, lat, reason.copy())
+    assert _wrong(read, truth) == 0
+    assert set(read.tolist()) & set(range(22, 29)) == {25, 26, 27, 28}
+
+
+@pytest.mark.parametrize("name, fresh", [("square121", 300), ("hexagon217_sep180", 0)])
+def test_every_marker_with_a_complete_neighbourhood_beside_an_occluded_patch_is_identified_on_every_lattice(name, fresh):
+    """The benchmark's occlusion_15 views of the translation lattices whose outer rows a patch can leave one marker
+    wide: the first 200 of one generator's stream (as the benchmark draws them) and ``fresh`` views drawn from
+    generators of their own. No wrong id, and every marker whose design neighbours are all visible gets its id.
+    Before the rows were read, square121 left a corner marker open in stream view 82 and in 4 of the 300 fresh
+    views, hexagon217 in stream view 159 (the corner 16 of an outer ring left two slots wide along one side)."""
+    from benchmarks.experiments.identification import _complete_neighbourhood
+
+    design = DESIGNS[name]
+    rng = np.random.default_rng(0)
+    views = []
+    for k in range(200):
+        pts, truth, gone = add_defects(view_px(design, rng), rng, occlusion=0.15)
+        views.append((f"stream {k}", pts, truth, _complete_neighbourhood(design, gone)))
+    views += [(f"fresh {seed}", *_occluded_view(name, seed)) for seed in range(fresh)]
+    for which, pts, truth, complete in views:
+        ids = code_rings(_blobs(pts), design).ids
+        assert _wrong(ids, truth) == 0, which
+        assert set(complete.tolist()) <= set(ids[ids >= 0].tolist()), which
+
+
 @settings(derandomize=True, database=None, max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(name=designs, seed=seeds)
 def test_no_wrong_id_in_an_occluded_first_frame_read_from_rest(name, seed):
@@ -205,22 +264,22 @@ def _occluded_first_frame(name, seed):
 
 
 def test_a_first_frame_ring_coding_reads_is_completed_from_rest():
-    """square121 with a 15 % patch hidden at its rim: ring coding identifies over 90 % of the view but leaves
-    open a marker beside the patch whose design neighbours are all visible. The rest pattern's reading
+    """square121 with a 15 % patch hidden at its rim: ring coding identifies over 90 % of the view (the outer
+    row beyond the patch along its rows) but leaves open a marker beside the patch. The rest pattern's reading
     gives every blob ring coding identified the same id and identifies that marker too, so it is taken:
-    every marker with a complete neighbourhood is identified, none wrong."""
+    every marker identified, none wrong."""
     from pipeline.vision.dtrc import read_from_rest
 
     design = DESIGNS["square121"]
     pts, truth, complete, rest = _occluded_first_frame("square121", 58)
     coding = code_rings(_blobs(pts), design)
     coded = coding.ids >= 0
-    assert np.count_nonzero(coded) >= 0.9 * len(pts)
-    assert not set(complete.tolist()) <= set(coding.ids[coded].tolist())
+    assert 0.9 * len(pts) <= np.count_nonzero(coded) < len(pts)
     ids = read_from_rest(_blobs(pts), design, coding, (rest, np.arange(len(rest), dtype=np.int64))).ids
     assert np.array_equal(ids[coded], coding.ids[coded])
     assert _wrong(ids, truth) == 0
     assert set(complete.tolist()) <= set(ids[ids >= 0].tolist())
+    assert np.count_nonzero(ids >= 0) == len(pts)
 
 
 @pytest.mark.parametrize("shift", [(1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.5, 0.0)])

@@ -11,6 +11,7 @@ from pipeline.vision.identity.anchoring import _components
 from pipeline.vision.identity.certify import grow_round
 from pipeline.vision.identity.consistency import _blob_of
 from pipeline.vision.identity.reacquire import reacquire
+from pipeline.vision.identity.rows import extend_rows
 from pipeline.vision.identity.constants import R_FEW
 from pipeline.vision.identity.temporal import expected_positions
 from pipeline.vision.nearest import knn, nearest_other_distances
@@ -125,6 +126,11 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             if (back >= 0).any():
                 ids = np.where(back >= 0, back, ids)
                 msgs.append(f"re-acquired {int((back >= 0).sum())} marker(s) lost in earlier frames")
+    if lat.translation_lattice and int((ids >= 0).sum()) < min(n_slots, len(pts)):
+        rows = extend_rows(pts, ids, lat, reason)
+        if rows is not ids:
+            msgs.append(f"read {int((rows >= 0).sum() - (ids >= 0).sum())} outer-ring marker(s) along their rows")
+            ids = rows
     reason[ids[ids >= 0]] = 0
     n_certified = int((ids >= 0).sum())
     if defects or n_certified < n_slots:
