@@ -15,11 +15,13 @@ identified, evenly spaced in the view (their two steps agree in length and direc
 when it lies within :data:`ROW_GATE` of that step, no other blob is nearly as near (twice as far and
 :data:`~pipeline.vision.identity.constants.AMBIGUITY_MARGIN` steps farther), no identified marker holds
 it, and no other row proposes another blob for the slot or this blob for another slot. Only slots the
-rule's growth cannot predict at all are read so (fewer than three identified neighbours off one line
-within its neighbourhood): where the rule has a map, its verdict stands. The step is repeated along the
-row, so the strip is read from each end inwards.
+rule cannot decide are read so: those growth cannot predict (fewer than three identified neighbours off one
+line within the slot's neighbourhood), and those the consistency test refused only for want of identified
+neighbours (the ends of the strip, beside the rest). Where the rule has a map and a verdict from it (no blob
+near its prediction, two blobs, a blob inconsistent with its neighbours), that verdict stands. The step is
+repeated along the row, so the strip is read from each end inwards.
 
-It is wrong only where the slot's own marker is missing and another blob stands within a fifth of a step
+It can be wrong where the slot's own marker is missing and another blob stands within a fifth of a step
 of where the row continues: the case growth cannot tell from the marker displaced either (the
 identification benchmark draws no spurious blob there). Where rows crowd (a crest pressed into the skin
 near the rim), the steps before the slot shrink, and the row is not extended across it.
