@@ -9,6 +9,8 @@ tests and the benchmark's figures speak of the same trials. Over ~400 lines on p
 tests and the falsifying views they once drew (kept as regular tests) share the view generators here.
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, assume, given, settings
@@ -22,6 +24,7 @@ from pipeline.io.synthetic import nominal_calibration
 from pipeline.types import Blobs
 
 DESIGNS = {name: load_design(name) for name in PATTERN_DESIGNS}
+FIXTURES = Path(__file__).resolve().parent / "data"
 PROPERTY = settings(derandomize=True, database=None, max_examples=60, deadline=None,
                     suppress_health_check=[HealthCheck.too_slow])
 seeds = st.integers(min_value=0, max_value=2**32 - 1)
@@ -77,30 +80,22 @@ def _occluded_view(name, seed):
     return pts, truth, _complete_neighbourhood(DESIGNS[name], gone)
 
 
-def test_a_corner_beyond_an_occluded_patch_is_not_read_as_the_skin_folded_over():
-    """hexagon61 with the patch over the ring beside its lower-left corner (35, 37, 49-51, 57-60 hidden): the
-    corner's four markers (15, 16, 17, 36) touch the rest only by two bare edges (15-14, 17-18). Every lattice
-    shift that would lengthen both edges past the seam length carries the corner across the rest onto the
-    hidden slots, which would show the skin's markers in reversed order across the seam; rows crowded out of
-    the detection lengthen an edge along itself. So nothing explains the gap but the patch: the corner is
-    read (it was withdrawn as not anchored), every marker with a complete neighbourhood identified."""
-    pts, truth, complete = _occluded_view("hexagon61_sep354", 13)
-    coding = code_rings(_blobs(pts), DESIGNS["hexagon61_sep354"])
-    assert _wrong(coding.ids, truth) == 0
-    assert {15, 16, 17, 36} <= set(coding.ids.tolist())
-    assert set(complete.tolist()) <= set(coding.ids.tolist())
-    assert np.count_nonzero(coding.ids >= 0) == np.count_nonzero(truth >= 0)
+def test_a_piece_read_shifted_from_the_rest_pattern_is_withdrawn():
+    """hexagon217_sep180 pressed (an analytic Gaussian, 3 % missing + 3 % spurious blobs, the left view of trial 380 of
+    the identification benchmark's press_first_frame stream), read with the rest pattern as its previous frame:
+    ring coding's proposal holds a piece of 19 markers one step over from where they are, joined to the rest by a
+    single bare edge. The only lattice shifts that lengthen that edge past the seam length carry the piece across the
+    rest, and the true reading puts the seam marker onto the rest's own slot; the piece is withdrawn all the same, so
+    no id is wrong (a rule that took the across-the-rest shifts for a skin folded over itself, and so kept the piece,
+    emitted all 19 wrong and cost the frame its rest reading)."""
+    from pipeline.vision.dtrc.tracking import _aligned
 
-
-def test_every_marker_with_a_complete_neighbourhood_beside_an_occluded_patch_is_identified():
-    """hexagon61, 200 of the benchmark's occlusion_15 views (a 15 % patch, at the rim half the time): no wrong
-    id, and every marker whose design neighbours are all visible gets its id (7 of the 200 views left one such
-    corner marker open while a reading folded across the seam counted as an alternative)."""
-    for seed in range(200):
-        pts, truth, complete = _occluded_view("hexagon61_sep354", seed)
-        ids = code_rings(_blobs(pts), DESIGNS["hexagon61_sep354"]).ids
-        assert _wrong(ids, truth) == 0, seed
-        assert set(complete.tolist()) <= set(ids[ids >= 0].tolist()), seed
+    f = np.load(FIXTURES / "rest_read_piece_hexagon217_sep180.npz")
+    design = DESIGNS[str(f["design"])]
+    rest = (_aligned(np.ascontiguousarray(f["rest"]), f["xy"]), np.arange(len(f["rest"]), dtype=np.int64))
+    coding = code_rings(_blobs(f["xy"]), design, previous=rest)
+    assert _wrong(coding.ids, f["truth"]) == 0
+    assert np.count_nonzero(coding.ids >= 0) >= 0.9 * np.count_nonzero(f["truth"] >= 0)
 
 
 def test_an_outer_row_beyond_an_occluded_patch_is_read_along_itself():

@@ -284,17 +284,11 @@ def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, l
         open_ = evidence < min(ANCHOR_EVIDENCE, len(mine))
         if open_.any():
             # a shifted reading explains the gap by rows crowded out of the detection only when it
-            # moves the piece away from the rest across every bare edge of the seam: each edge longer,
-            # and lengthened along itself (the crowded rows lie between the piece and the rest). A shift
-            # that lengthens an edge by carrying the piece over the rest to its far side would have the
-            # view show the skin's markers in reversed order across the seam: a skin seen folded over
-            # itself, which a press does not do (an occluded patch beside a corner of the pattern leaves
-            # only such shifts open)
+            # moves the piece away from the rest across every bare edge of the seam
             a, c = _seam(slot_of, mine, members[piece != p], lat)
             alt = shifts[open_][:, a]
             far = np.linalg.norm(lat.xy[alt] - lat.xy[c][None], axis=2) > SEAM_LONGER * lat.pitch
-            away = np.einsum("kej,ej->ke", lat.xy[alt] - lat.xy[a][None], lat.xy[a] - lat.xy[c]) > 0.0
-            open_[open_] = (far & away & (alt >= 0)).all(axis=1)
+            open_[open_] = (far & (alt >= 0)).all(axis=1)
         if open_.any():
             loose[mine] = True
     return loose
