@@ -33,7 +33,7 @@ import numpy as np
 
 from pipeline.vision.identity.certify import _predict_free
 from pipeline.vision.identity.consistency import _blob_of
-from pipeline.vision.identity.constants import AMBIGUITY_MARGIN, R_FEW
+from pipeline.vision.identity.constants import AMBIGUITY_MARGIN, LATTICE_STEP, R_FEW
 from pipeline.vision.identity.lattice import Lattice
 from pipeline.vision.nearest import knn
 
@@ -67,7 +67,7 @@ def row_chains(lat: Lattice) -> np.ndarray:
         for s in range(len(lat.xy)):             # the lattice's steps: the immediate neighbours' offsets
             nb = lat.nbr[s][lat.nbr[s] >= 0]
             d = lat.xy[nb] - lat.xy[s]
-            offsets.append(d[np.hypot(*d.T) <= 1.1 * lat.pitch])
+            offsets.append(d[np.hypot(*d.T) <= LATTICE_STEP * lat.pitch])
         offsets = np.vstack(offsets)
         _, first = np.unique(np.round(offsets / (_SITE * lat.pitch)).astype(np.int64), axis=0, return_index=True)
         steps = offsets[first]
