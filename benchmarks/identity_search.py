@@ -17,8 +17,8 @@ calibration and the refracting stack) with the defects of the identification ben
 closer than half the median separation (such pins merge in detection). Prints the views in scope, the wrong
 ids and the views holding them, and the coverage; ``--out FILE`` writes every view's figures as JSON.
 
-``--hidden LOW HIGH`` also hides, in each draw, a fraction of the markers in that range about a point within 1.5
-separations of the pattern's centre (a glare spot; no spurious blob within half a separation of a hidden
+``--hidden LOW HIGH`` also hides, in each draw, a fraction of the markers in that range about a point within
+``--hidden-within`` separations of the pattern's centre (1.5 unless given; a glare spot; no spurious blob within half a separation of a hidden
 marker, as for a missing one), and on a circular pattern reports the twist of every true reading that lacks
 the centre rings: what the centre test of such a reading bounds (``ANNULUS_TWIST``; the search recorded in
 docs/IDENTIFICATION.md: ``--draws 4000 --seed 29 --sigma 1.5 6 --off 3 --rate 0.05 --lateral 0.5 --hidden 0.05
@@ -61,12 +61,12 @@ def pressed_view(design, seed: int, sigma_mm: float, lateral: float, rate: float
 
 
 def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral: float = 0.6, rate: float = 0.1,
-           off_mm: float = 6.0, hidden=(0.0, 0.0), progress: bool = False) -> dict:
+           off_mm: float = 6.0, hidden=(0.0, 0.0), hidden_within: float = 1.5, progress: bool = False) -> dict:
     """Run the search; returns {"in_scope", "wrong_ids", "wrong_views", "coverage", "seconds", "views": [...]}.
 
     With ``hidden`` (a fraction range, upper bound above 0) each draw also hides a fraction of the markers in
-    that range about a point within 1.5 separations of the pattern's centre, and, for a circular pattern, each
-    view whose true reading lacks the centre rings records that reading's twist
+    that range about a point within ``hidden_within`` separations of the pattern's centre, and, for a circular
+    pattern, each view whose true reading lacks the centre rings records that reading's twist
     (:func:`pipeline.vision.identity.centring.annulus_twist`: what the certainty rule's centre test measures;
     the result adds "twist": {"readings", "max", "p99", "refused"})."""
     from tqdm import tqdm
@@ -83,6 +83,8 @@ def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral
         raise UserError("--lateral, --rate and --off must be >= 0 (rate below 0.5)")
     if not 0 <= hidden[0] <= hidden[1] < 0.5:
         raise UserError(f"--hidden {hidden[0]:g} {hidden[1]:g}: need 0 <= low <= high < 0.5")
+    if not hidden_within >= 0:
+        raise UserError(f"--hidden-within {hidden_within:g}: need >= 0 (separations)")
     design = load_design(design_name)
     rng = np.random.default_rng(seed)
     views, t0 = [], time.perf_counter()
@@ -93,7 +95,8 @@ def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral
         centre = (r * np.cos(a), r * np.sin(a))
         hide, at = 0.0, (0.0, 0.0)
         if hidden[1] > 0:
-            hide, ra, aa = float(rng.uniform(*hidden)), float(rng.uniform(0, 1.5)), float(rng.uniform(0, 2 * np.pi))
+            hide, ra = float(rng.uniform(*hidden)), float(rng.uniform(0, hidden_within))
+            aa = float(rng.uniform(0, 2 * np.pi))
             at = (ra * np.cos(aa), ra * np.sin(aa))
         pts, truth, in_scope = pressed_view(design, s, sg, lt, rt, centre, hide, at)
         if not in_scope:
@@ -145,11 +148,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--off", type=float, default=6.0, help="largest distance of the press centre from the axis, mm")
     ap.add_argument("--hidden", type=float, nargs=2, default=(0.0, 0.0), metavar=("LOW", "HIGH"),
                     help="hide a fraction of the markers in this range about a point near the pattern's centre")
+    ap.add_argument("--hidden-within", type=float, default=1.5, metavar="SEPS",
+                    help="the hidden patch's centre lies within this many median separations of the pattern's "
+                         "centre (default 1.5; the pattern's radius in separations puts it anywhere, the rim included)")
     ap.add_argument("--out", default=None, help="write every view's figures as JSON")
     args = ap.parse_args(argv)
     try:
         res = search(args.design, args.draws, args.seed, sigma=tuple(args.sigma), lateral=args.lateral,
-                     rate=args.rate, off_mm=args.off, hidden=tuple(args.hidden), progress=sys.stderr.isatty())
+                     rate=args.rate, off_mm=args.off, hidden=tuple(args.hidden), hidden_within=args.hidden_within,
+                     progress=sys.stderr.isatty())
     except UserError as exc:
         print(f"identity_search: {exc}", file=sys.stderr)
         return 2

@@ -265,10 +265,11 @@ def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, l
     smaller piece where that reading would put its markers on slots the rest holds, or outside the
     design: every lattice shift of the design (:attr:`Lattice.alt`) applied to the piece alone must be
     excluded by :data:`ANCHOR_EVIDENCE` of its markers (all of them when it has fewer), unless the
-    shift moves the piece away from the rest across every edge of the seam (each longer than
-    :data:`SEAM_LONGER` pitches): only then does it explain the gap, by rows crowded out of the
-    detection. Pieces of fewer than :data:`MIN_PATCH` markers carry no reading of their own (every fit
-    of theirs leans on the rest) and are left to the consistency test."""
+    shifted reading explains the seam one way along all of it: rows crowded out of the detection (every
+    seam edge longer than :data:`SEAM_LONGER` pitches and lengthened along itself, the piece carried away
+    from the rest), or blobs at the seam that are not markers (every seam edge collapsed: the piece's
+    seam marker on the rest's own slot). Pieces of fewer than :data:`MIN_PATCH` markers carry no reading
+    of their own (every fit of theirs leans on the rest) and are left to the consistency test."""
     shifts = _shift_alternatives(lat)
     ids, size = np.unique(piece, return_counts=True)
     held = np.zeros(len(lat.xy) + 1, bool)                # the last entry: outside the design
@@ -283,12 +284,22 @@ def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, l
         evidence = held[shifts[:, slot_of[mine]]].sum(axis=1)
         open_ = evidence < min(ANCHOR_EVIDENCE, len(mine))
         if open_.any():
-            # a shifted reading explains the gap by rows crowded out of the detection only when it
-            # moves the piece away from the rest across every bare edge of the seam
+            # a shifted reading must explain the seam as the view shows it, one way along all of it:
+            # rows crowded out of the detection (each edge lengthened along itself: the piece carried
+            # away from the rest, the crowded rows between them), or blobs at the seam that are not
+            # markers (each edge collapsed: the piece's seam marker on the rest's own slot, the rest's
+            # blob there spurious). A shift that lengthens an edge by carrying the piece over the rest
+            # to its far side would have the view show the skin's markers in reversed order across the
+            # seam, a skin folded over itself, which a press does not do; one that leaves an edge a
+            # design neighbour's length turns it, against the view (the consistency test holds the
+            # edge where it is)
             a, c = _seam(slot_of, mine, members[piece != p], lat)
             alt = shifts[open_][:, a]
             far = np.linalg.norm(lat.xy[alt] - lat.xy[c][None], axis=2) > SEAM_LONGER * lat.pitch
-            open_[open_] = (far & (alt >= 0)).all(axis=1)
+            away = np.einsum("kej,ej->ke", lat.xy[alt] - lat.xy[a][None], lat.xy[a] - lat.xy[c]) > 0.0
+            collapsed = alt == c[None]
+            inside = alt >= 0
+            open_[open_] = (far & away & inside).all(axis=1) | (collapsed & inside).all(axis=1)
         if open_.any():
             loose[mine] = True
     return loose
