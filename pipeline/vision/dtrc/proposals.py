@@ -108,8 +108,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
         if not _settled(pts, cands[0], merged, lat):
             cands.append(run(merged))
     ids, reason, _ = max(cands, key=count)
-    if lat.translation_lattice:
-        ids, reason = _withdraw_thinly_held(ids, reason, lat, msgs)
+    ids, reason = _withdraw_thinly_held(ids, reason, lat, msgs)
     rule_ids = ids
     if carries:
         bad = _temporally_contradicted(previous, pts, ids, carried)
@@ -151,21 +150,26 @@ def _settled(pts: np.ndarray, best: tuple, merged: np.ndarray, lat) -> bool:
 #: An interior marker of a hexagonal or square pattern keeps its id only with at least this many of its
 #: immediate design neighbours identified beside it.
 HELD_BY = 3
+#: The same for a circular pattern, whose markers about a hidden centre keep their ids by their rings (a ring
+#: neighbour on either side). Near a sharp press off the axis a blob given an interior slot held by one identified
+#: neighbour of six was the next slot's pin or a spurious blob (docs/IDENTIFICATION.md).
+HELD_BY_RINGS = 2
 
 
-def held(ids: np.ndarray, lab: np.ndarray, lat) -> np.ndarray:
+def held(ids: np.ndarray, lab: np.ndarray, lat, at_least: int = HELD_BY) -> np.ndarray:
     """Which of the identified blobs ``lab`` (their ids in ``ids``, one id per blob) are outer-ring markers or
-    have at least :data:`HELD_BY` of their immediate design neighbours identified in ``ids``."""
+    have at least ``at_least`` of their immediate design neighbours identified in ``ids``."""
     has = np.zeros(len(lat.xy), bool)
     has[ids[ids >= 0]] = True
     nb = lat.nbr[ids[lab]]
     count = np.count_nonzero((nb >= 0) & has[np.maximum(nb, 0)], axis=1)
-    return (count >= HELD_BY) | np.isin(ids[lab], lat.outer_ring)
+    return (count >= at_least) | np.isin(ids[lab], lat.outer_ring)
 
 
 def _withdraw_thinly_held(ids: np.ndarray, reason: np.ndarray, lat, msgs: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Withdraw the ids of interior markers with fewer than :data:`HELD_BY` identified immediate design
-    neighbours (reason ``R_FEW``), once. Near a sharp press tip the skin crowds to half the median
+    neighbours (:data:`HELD_BY_RINGS` on a circular pattern; reason ``R_FEW``), once. Near a sharp press
+    tip the skin crowds to half the median
     spacing and a missing marker's slot, predicted across a gap from one side, is taken by whatever
     blob sits about where the displaced pin would be: a spurious blob, or the next pin. Such an id is
     held by two neighbours or fewer; a marker inside the pattern that is really identified has its
@@ -177,13 +181,14 @@ def _withdraw_thinly_held(ids: np.ndarray, reason: np.ndarray, lat, msgs: list[s
     lab = np.flatnonzero(ids >= 0)
     if len(lab) == 0:
         return ids, reason
-    drop = ~held(ids, lab, lat)
+    need = HELD_BY if lat.translation_lattice else HELD_BY_RINGS
+    drop = ~held(ids, lab, lat, need)
     if not drop.any():
         return ids, reason
     ids, reason = ids.copy(), reason.copy()
     reason[ids[lab[drop]]] = R_FEW
     ids[lab[drop]] = -1
-    msgs.append(f"withdrew {int(drop.sum())} interior id(s) held by fewer than {HELD_BY} identified neighbours")
+    msgs.append(f"withdrew {int(drop.sum())} interior id(s) held by fewer than {need} identified neighbours")
     return ids, reason
 
 
