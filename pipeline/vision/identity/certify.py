@@ -263,12 +263,12 @@ def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, l
     along the lattice across the gap, its local consistency intact and the patch's anchoring (won on
     the evidence of its largest piece) vouching for it. The rest excludes a shifted reading of a
     smaller piece where that reading would put its markers on slots the rest holds, or outside the
-    design: every lattice shift of the design (:attr:`Lattice.alt`) applied to the piece alone must be
-    excluded by :data:`ANCHOR_EVIDENCE` of its markers (all of them when it has fewer), unless the
-    shifted reading explains the seam one way along all of it: rows crowded out of the detection (every
-    seam edge longer than :data:`SEAM_LONGER` pitches and lengthened along itself, the piece carried away
-    from the rest), or blobs at the seam that are not markers (every seam edge collapsed: the piece's
-    seam marker on the rest's own slot). Pieces of fewer than :data:`MIN_PATCH` markers carry no reading
+    design: every lattice shift of the design (:attr:`Lattice.alt`) applied to the piece alone that
+    explains the seam one way along all of it must be excluded by :data:`ANCHOR_EVIDENCE` of its markers
+    (all of them when it has fewer). A shift explains the seam by rows crowded out of the detection
+    (every seam edge longer than :data:`SEAM_LONGER` pitches and lengthened along itself, the piece
+    carried away from the rest) or by blobs at the seam that are not markers (every seam edge collapsed:
+    the piece's seam marker on the rest's own slot). Pieces of fewer than :data:`MIN_PATCH` markers carry no reading
     of their own (every fit of theirs leans on the rest) and are left to the consistency test."""
     shifts = _shift_alternatives(lat)
     ids, size = np.unique(piece, return_counts=True)
