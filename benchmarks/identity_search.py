@@ -20,9 +20,9 @@ ids and the views holding them, and the coverage; ``--out FILE`` writes every vi
 ``--hidden LOW HIGH`` also hides, in each draw, a fraction of the markers in that range about a point within
 ``--hidden-within`` separations of the pattern's centre (1.5 unless given; a glare spot; no spurious blob within
 half a separation of a hidden marker, as for a missing one), and on a circular pattern reports the twist of
-every true reading that lacks the centre rings: what the centre test of such a reading bounds (``ANNULUS_TWIST``; the search recorded in
-docs/IDENTIFICATION.md: ``--draws 4000 --seed 29 --sigma 1.5 6 --off 3 --rate 0.05 --lateral 0.5 --hidden 0.05
-0.25``).
+every true reading that lacks the centre rings: what the centre test of such a reading bounds
+(``ANNULUS_TWIST``; the search recorded in docs/IDENTIFICATION.md: ``--draws 4000 --seed 29 --sigma 1.5 6 --off 3
+--rate 0.05 --lateral 0.5 --hidden 0.05 0.25``).
 """
 
 from __future__ import annotations

@@ -169,8 +169,8 @@ def held(ids: np.ndarray, lab: np.ndarray, lat, at_least: int = HELD_BY) -> np.n
 def _withdraw_thinly_held(ids: np.ndarray, reason: np.ndarray, lat, msgs: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Withdraw the ids of interior markers with fewer than :data:`HELD_BY` identified immediate design
     neighbours (:data:`HELD_BY_RINGS` on a circular pattern; reason ``R_FEW``), once. Near a sharp press
-    tip the skin crowds to half the median
-    spacing and a missing marker's slot, predicted across a gap from one side, is taken by whatever
+    tip the skin crowds to half the median spacing and a missing marker's slot, predicted across a gap
+    from one side, is taken by whatever
     blob sits about where the displaced pin would be: a spurious blob, or the next pin. Such an id is
     held by two neighbours or fewer; a marker inside the pattern that is really identified has its
     ring of six (eight) neighbours mostly identified too. The outer ring, where a marker has only

@@ -268,8 +268,8 @@ def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, l
     (all of them when it has fewer). A shift explains the seam by rows crowded out of the detection
     (every seam edge longer than :data:`SEAM_LONGER` pitches and lengthened along itself, the piece
     carried away from the rest) or by blobs at the seam that are not markers (every seam edge collapsed:
-    the piece's seam marker on the rest's own slot). Pieces of fewer than :data:`MIN_PATCH` markers carry no reading
-    of their own (every fit of theirs leans on the rest) and are left to the consistency test."""
+    the piece's seam marker on the rest's own slot). Pieces of fewer than :data:`MIN_PATCH` markers carry
+    no reading of their own (every fit of theirs leans on the rest) and are left to the consistency test."""
     shifts = _shift_alternatives(lat)
     ids, size = np.unique(piece, return_counts=True)
     held = np.zeros(len(lat.xy) + 1, bool)                # the last entry: outside the design
@@ -297,9 +297,9 @@ def _loose_pieces(slot_of: np.ndarray, members: np.ndarray, piece: np.ndarray, l
             alt = shifts[open_][:, a]
             far = np.linalg.norm(lat.xy[alt] - lat.xy[c][None], axis=2) > SEAM_LONGER * lat.pitch
             away = np.einsum("kej,ej->ke", lat.xy[alt] - lat.xy[a][None], lat.xy[a] - lat.xy[c]) > 0.0
-            collapsed = alt == c[None]
-            inside = alt >= 0
-            open_[open_] = (far & away & inside).all(axis=1) | (collapsed & inside).all(axis=1)
+            # a seam marker shifted off the design (-1, which would index the last slot) explains nothing
+            collapsed = alt == c[None]                     # c is a slot, so a collapsed edge is inside
+            open_[open_] = (far & away & (alt >= 0)).all(axis=1) | collapsed.all(axis=1)
         if open_.any():
             loose[mine] = True
     return loose
