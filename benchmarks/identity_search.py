@@ -23,6 +23,15 @@ half a separation of a hidden marker, as for a missing one), and on a circular p
 every true reading that lacks the centre rings: what the centre test of such a reading bounds
 (``ANNULUS_TWIST``; the search recorded in docs/IDENTIFICATION.md: ``--draws 4000 --seed 29 --sigma 1.5 6 --off 3
 --rate 0.05 --lateral 0.5 --hidden 0.05 0.25``).
+
+``--sequences`` draws press sequences instead, read in stereo through one runner as a recording is
+(:func:`dragged_sequence`, :func:`sequence_search`): a Gaussian tip deepened 1 mm a frame to 5 mm while it
+slides up to 2 mm a frame, each view of each frame with its own missing and spurious blobs; the k-th sequence is
+drawn from seed ``--seed`` + k, and the figures are the frames' pairs (wrong: either view's blob is not that
+marker) against the markers present in both views (the search recorded in docs/IDENTIFICATION.md: ``--sequences
+--design D --draws 120 --seed 5000``, each pattern)::
+
+    python -m benchmarks.identity_search --sequences --design hexagon217_sep180 --draws 120 --seed 5000
 """
 
 from __future__ import annotations
@@ -35,7 +44,7 @@ import numpy as np
 
 from pipeline.errors import UserError
 
-__all__ = ["pressed_view", "search"]
+__all__ = ["dragged_sequence", "pressed_view", "search", "sequence_search"]
 
 DEPTH_MM = 5.0
 
@@ -124,6 +133,57 @@ def search(design_name: str, draws: int, seed: int, *, sigma=(1.0, 5.0), lateral
     return out
 
 
+def dragged_sequence(design, seed: int, frames: int = 5, calib=None, runner=None) -> list[dict]:
+    """One sequence of the sequence search (module notes), drawn from ``seed``: a Gaussian tip (sigma uniform in
+    1-6 mm, centre uniform in [-5, 5] mm in x and y) deepened 1 mm a frame while it slides (uniform in [0, 2] mm a
+    frame in x and in y), bulge in [0, 0.5], each view of each frame with its own missing and spurious blobs
+    (rate in [0, 0.1]) and 0.2 px centre noise, read frame by frame through one runner
+    (:meth:`pipeline.runner.Reconstructor.identify`). Per frame: {"wrong", "correct", "present"} of its pairs
+    (:func:`benchmarks.experiments.identification.score_pairs`)."""
+    from benchmarks.experiments.identification import _blobs, score_pairs, stereo_views_with_defects
+    from pipeline.geometry.refraction import project_through_stack
+    from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration
+    from pipeline.runner import Reconstructor
+
+    calib = nominal_calibration(design) if calib is None else calib
+    rng = np.random.default_rng(seed)
+    sigma, (cx, cy), slide, rate, lateral = (rng.uniform(1.0, 6.0), rng.uniform(-5, 5, 2), rng.uniform(0, 2.0, 2),
+                                             rng.uniform(0, 0.1), rng.uniform(0, 0.5))
+    rec = Reconstructor(design, calib, view_threads=1) if runner is None else runner
+    out = []
+    for k in range(1, frames + 1):
+        xyz = gaussian_press_markers(design, float(k), sigma_mm=sigma, lateral=lateral,
+                                     centre_xy_mm=(cx + slide[0] * k, cy + slide[1] * k))
+        sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, rate, 0.2)
+        out.append(score_pairs(rec.identify(_blobs(sides[0][0]), _blobs(sides[1][0])), sides))
+    return out
+
+
+def sequence_search(design_name: str, sequences: int, seed: int, *, progress: bool = False) -> dict:
+    """The sequence search: ``sequences`` draws of :func:`dragged_sequence`, the k-th from seed ``seed + k``;
+    returns {"frames", "wrong_pairs", "wrong_sequences", "coverage" (correct pairs over markers present in both
+    views), "seconds", "sequences": [{"seed", "wrong", "correct", "present"}]}."""
+    from tqdm import tqdm
+
+    from pipeline.design import load_design
+    from pipeline.io.synthetic import nominal_calibration
+
+    if sequences < 1:
+        raise UserError(f"--draws {sequences}: at least one draw")
+    design = load_design(design_name)
+    calib = nominal_calibration(design)
+    rows, t0 = [], time.perf_counter()
+    for k in tqdm(range(sequences), desc=f"sequences {design.name}", disable=not progress, leave=False):
+        s = seed + k
+        frames = dragged_sequence(design, s, calib=calib)
+        rows.append({"seed": s, **{k: [f[k] for f in frames] for k in ("wrong", "correct", "present")}})
+    present = sum(sum(r["present"]) for r in rows)
+    return {"design": design.name, "draws": sequences, "seed": seed, "frames": sum(len(r["wrong"]) for r in rows),
+            "wrong_pairs": sum(sum(r["wrong"]) for r in rows), "wrong_sequences": sum(sum(r["wrong"]) > 0 for r in rows),
+            "coverage": sum(sum(r["correct"]) for r in rows) / present if present else float("nan"),
+            "seconds": time.perf_counter() - t0, "sequences": rows}
+
+
 def _true_twist(pts: np.ndarray, truth: np.ndarray, design) -> float | None:
     """The twist the centre test measures on the view's true reading when it lacks the centre rings (circular
     patterns), else None."""
@@ -151,8 +211,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hidden-within", type=float, default=1.5, metavar="SEPS",
                     help="the hidden patch's centre lies within this many median separations of the pattern's "
                          "centre (default 1.5; the pattern's radius in separations puts it anywhere, the rim included)")
+    ap.add_argument("--sequences", action="store_true",
+                    help="draw press sequences read in stereo through one runner instead of single views (the "
+                         "sequence search; --draws sequences, the other draw options do not apply)")
     ap.add_argument("--out", default=None, help="write every view's figures as JSON")
     args = ap.parse_args(argv)
+    if args.sequences:
+        try:
+            res = sequence_search(args.design, args.draws, args.seed, progress=sys.stderr.isatty())
+        except UserError as exc:
+            print(f"identity_search: {exc}", file=sys.stderr)
+            return 2
+        print(f"{res['design']}: {res['draws']} sequences, {res['frames']} frames, {res['wrong_pairs']} wrong "
+              f"pair(s) in {res['wrong_sequences']} sequence(s), coverage {100 * res['coverage']:.2f} %, "
+              f"{res['seconds']:.0f} s")
+        for r in res["sequences"]:
+            if sum(r["wrong"]):
+                print(f"  wrong: sequence seed {r['seed']}: wrong pairs per frame {r['wrong']}")
+        if args.out:
+            from pipeline.io.atomic import atomic_write_json
+
+            atomic_write_json(args.out, res, indent=1)
+        return 0
     try:
         res = search(args.design, args.draws, args.seed, sigma=tuple(args.sigma), lateral=args.lateral,
                      rate=args.rate, off_mm=args.off, hidden=tuple(args.hidden), hidden_within=args.hidden_within,

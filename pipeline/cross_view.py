@@ -20,7 +20,7 @@ blob. The proposals are then certified in the receiving view exactly as ring cod
 not rotated; an interior marker held by :data:`~pipeline.vision.dtrc.proposals.HELD_BY` identified
 neighbours): a blob proposed as its neighbour sits a whole separation from where its neighbours put it
 and is refused. The receiving
-view's own ids are never changed; an id is only added.
+view's own ids are not changed (but for the one case below); an id is only added.
 
 In a sequence the previous frame's pairs say more. Where crests crowd the pins, a view's ids come from the
 frame-to-frame map, not from the certainty rule, which such a view fails as a whole; the design's affine map
@@ -28,8 +28,8 @@ then misplaces a marker in space by most of a separation, but its previous point
 motion does not. A pair that lies that close to where the marker's motion puts it (:data:`MOTION_GATE`), passes
 the same one-reading tests and is held by identified neighbours in the receiving view is taken on that evidence.
 A marker the frame did not pair (one view dropped its blob) keeps a place for the next frames, carried by its
-neighbours' motion (:func:`carry`, :data:`CARRY_FRAMES`), so that it is predicted by its motion when it is seen
-again.
+neighbours' motion (:func:`pipeline.places.carry`, :data:`~pipeline.places.CARRY_FRAMES`), so that it is
+predicted by its motion when it is seen again.
 
 The other view also settles what one view cannot: a spurious blob near a marker whose neighbourhood is bent or
 seen from one side leaves that view's reading ambiguous ("two blobs near its predicted position"), and the
@@ -37,23 +37,34 @@ certainty rule refuses the proposal for the same reason. A blob whose ray cannot
 other view inside the gel is not that marker, whatever the neighbourhood predicts; with every such blob near the
 proposal set aside, the receiving view's rule is applied once more and decides (:data:`SETTLE_REACH`). A blob whose
 ray does meet it (one along the epipolar line) keeps the slot open.
+
+A view's id that only the markers' motion gave (the frame-to-frame map or re-acquisition, where the view's rule
+left the slot open: ``RingCoding.by_motion``) is asked the same question, and it is the one id of a view this
+module may take away. The map takes the blob nearest where the marker's neighbours' motion in the image puts it;
+a sharp tip dragged across the skin moves the marker under it unlike its neighbours, up to a whole separation in a
+frame, onto a spurious blob where they put it, while its own blob stands free beside it. Where another free blob
+within :data:`SETTLE_REACH` spacings meets the other view's marker inside the gel too, the id stands only if the
+marker's motion in space settles it: its design neighbours moved alike (:data:`~pipeline.places.MOTION_SPREAD`)
+and their mean motion puts it within :data:`MOTION_GATE` of the id's pair and of no other blob's pair. Otherwise
+the id is left open with that reason (:data:`MOTION_UNSETTLED`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
 
 from pipeline.design import SensorDesign
+from pipeline.places import moved_alike, moved_with_neighbours, neighbour_sets
 from pipeline.types import Blobs
 from pipeline.vision.dtrc.proposals import held
 from pipeline.vision.identity import certify, lattice_of
 from pipeline.vision.identity.constants import R_AMBIGUOUS
 from pipeline.vision.nearest import nearest_other_distances
 
-__all__ = ["across_views", "carry", "Places", "MAX_PAIRS"]
+__all__ = ["across_views", "MAX_PAIRS", "MOTION_GATE", "MOTION_UNSETTLED", "SETTLE_REACH", "XYZ_GATE"]
 
 #: Candidate pairs (free blobs of one view × markers only the other view identified) tested at most
 #: (128 × 128, ~10 ms a round on this machine's core); beyond, the view is left as it is (a view that
@@ -83,11 +94,6 @@ MOTION_GATE = 0.3
 #: the rule is applied again without it (a blob of the view's own one-view ambiguity lies within the growth
 #: gate widened by the bend, well inside a spacing).
 SETTLE_REACH = 1.0
-#: Frames a marker's place in space is carried by its neighbours' motion after its last checked pair
-#: (:func:`carry`), as a view's lost markers are carried for re-acquisition
-#: (:data:`~pipeline.vision.identity.reacquire.REACQUIRE_FRAMES`).
-CARRY_FRAMES = 2
-
 Locate = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
@@ -102,9 +108,24 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
     if lc.ids.size == 0 or rc.ids.size == 0:
         return codings
     lat = lattice_of(design)
+    settle = lc.by_motion.any() or rc.by_motion.any()
     todo = [_only_in(b.ids, a.ids, len(lat.xy)) for a, b in ((lc, rc), (rc, lc))]
-    if not any(len(w) and (a.ids < 0).any() for w, a in zip(todo, (lc, rc))):
+    if not settle and not any(len(w) and (a.ids < 0).any() for w, a in zip(todo, (lc, rc))):
         return codings
+    space, before = _in_space(blobs, lc, rc, lat, locate, previous)
+    if settle:
+        lc, rc = (_motion_settled(blobs[0].xy_px, lc, blobs[1].xy_px, rc, True, lat, space, before, locate),
+                  _motion_settled(blobs[1].xy_px, rc, blobs[0].xy_px, lc, False, lat, space, before, locate))
+        todo = [_only_in(b.ids, a.ids, len(lat.xy)) for a, b in ((lc, rc), (rc, lc))]
+    left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, before, locate)
+    right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, before, locate)
+    return (left, lrest), (right, rrest)
+
+
+def _in_space(blobs, lc, rc, lat, locate: Locate, previous) -> tuple[np.ndarray, tuple]:
+    """The markers both views identified, placed in space ((N, 3) by design id, NaN where not: their pairs that
+    pass the stereo check's test), and the previous frame's places (``previous``; NaN where none) with those of
+    checked pairs only (carried places set aside)."""
     both = np.intersect1d(lc.ids[lc.ids >= 0], rc.ids[rc.ids >= 0])
     ok, xyz = locate(blobs[0].xy_px[_index(lc.ids)[both]], blobs[1].xy_px[_index(rc.ids)[both]], both)
     space = np.full((len(lat.xy), 3), np.nan)
@@ -117,10 +138,69 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
         if age is not None and np.any(age > 0):
             measured = before.copy()
             measured[previous.ids[age > 0]] = np.nan
-    before = (before, measured)
-    left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, before, locate)
-    right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, before, locate)
-    return (left, lrest), (right, rrest)
+    return space, (before, measured)
+
+
+#: Why a view's id that only the markers' motion gave is withdrawn (:func:`_motion_settled`).
+MOTION_UNSETTLED = ("followed by its motion alone, and another free blob near it meets the other view's marker "
+                    "inside the gel too")
+
+
+def _motion_settled(pts: np.ndarray, coding, other_pts: np.ndarray, other, is_left: bool, lat, space: np.ndarray,
+                    before: tuple, locate: Locate):
+    """``coding`` of one view's blobs ``pts`` without the ids that only the markers' motion gave (``by_motion``)
+    where neither the stereo geometry nor the marker's motion in space settles which blob it is: a free blob of
+    this view within :data:`SETTLE_REACH` blob spacings of the id's blob whose rays also meet the other view's
+    marker of that id inside the gel, unless the marker's previous point moved by its design neighbours' mean
+    motion (``before``, ``space``: :func:`_in_space`) lies within :data:`MOTION_GATE` separations of the id's
+    pair and of no such blob's. The frame-to-frame map takes the blob nearest where the marker's neighbours'
+    motion in the image puts it, clear of the next; a sharp tip dragged across the skin moves the marker under
+    it unlike its neighbours (up to a whole separation in a frame), onto a spurious blob there, while its own
+    blob stands free within a spacing. Both blobs are then the marker as far as the two views can tell, and the
+    id is left open with that reason (the other view's id stands; no pair is made)."""
+    moved = np.flatnonzero(coding.by_motion)
+    if len(moved) == 0 or not (coding.ids < 0).any():
+        return coding
+    where = _index(other.ids)
+    i = coding.ids[moved]
+    has = i < len(where)
+    moved, i = moved[has], i[has]
+    has = where[i] >= 0
+    moved, i = moved[has], i[has]
+    if len(moved) == 0:
+        return coding
+    free = np.flatnonzero(coding.ids < 0)
+    spacing = float(np.median(nearest_other_distances(np.ascontiguousarray(pts, np.float64))))
+    near = np.hypot(*(pts[free][None, :, :] - pts[moved][:, None, :]).transpose(2, 0, 1)) <= SETTLE_REACH * spacing
+    k, f = np.nonzero(near)
+    if len(k) == 0:
+        return coding
+    a, b = pts[free[f]], other_pts[where[i[k]]]
+    ok, xyz = locate(*((a, b) if is_left else (b, a)), i[k])
+    k, xyz = k[ok], xyz[ok]
+    gate = MOTION_GATE * lat.pitch
+    open_ = []
+    for m in np.unique(k).tolist():
+        j = i[m]
+        p = moved_alike(j, before, lat, space) if np.isfinite(before[0][j, 0]) else None
+        if (p is None or not np.linalg.norm(space[j] - p) <= gate
+                or (np.linalg.norm(xyz[k == m] - p, axis=1) <= gate).any()):
+            open_.append(moved[m])
+    if not open_:
+        return coding
+    open_ = np.array(open_, np.int64)
+    ids, carried, by_motion = coding.ids.copy(), coding.carried.copy(), coding.by_motion.copy()
+    gone = ids[open_]
+    ids[open_] = -1
+    carried[np.isin(carried, gone)] = -1
+    by_motion[open_] = False
+    unmatched = np.concatenate([coding.unmatched_ids, gone])
+    order = np.argsort(unmatched, kind="stable")
+    reasons = coding.unmatched_reasons + (MOTION_UNSETTLED,) * len(gone)
+    return replace(coding, ids=ids, carried=carried, by_motion=by_motion, unmatched_ids=unmatched[order],
+                   unmatched_reasons=tuple(reasons[j] for j in order),
+                   messages=coding.messages + (f"left {len(gone)} id(s) followed by motion open: another blob near "
+                                               "each meets the other view's marker too",))
 
 
 def _only_in(ids: np.ndarray, other: np.ndarray, n: int) -> np.ndarray:
@@ -139,29 +219,11 @@ def _index(ids: np.ndarray) -> np.ndarray:
     return where
 
 
-def _neighbour_sets(i: int, lat, *placed: np.ndarray):
-    """Marker ``i``'s design neighbours that have a point in every one of ``placed`` ((N, 3), NaN where not), at
-    least three of them: its immediate neighbours, then those within 2.5 pitches."""
-    for table in (lat.nbr, lat.nbr2):
-        nb = table[i][table[i] >= 0]
-        for space in placed:
-            nb = nb[np.isfinite(space[nb, 0])]
-        if len(nb) >= 3:
-            yield nb
-
-
-def _moved(i: int, place: np.ndarray, lat, now: np.ndarray, then: np.ndarray) -> np.ndarray | None:
-    """Marker ``i``'s ``place`` in the frame before moved by the mean motion of its design neighbours placed in both
-    frames (``then`` -> ``now``, (N, 3), NaN where not; three at least, :func:`_neighbour_sets`); None where too few."""
-    nb = next(_neighbour_sets(i, lat, now, then), None)
-    return None if nb is None else place + (now[nb] - then[nb]).mean(axis=0)
-
-
 def _predicted(want: np.ndarray, lat, space: np.ndarray, before: tuple) -> tuple[np.ndarray, np.ndarray]:
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
     than three of them, not on one line, have a 3-D point), and (len(want),) whether that is by its motion:
     where the previous frame placed the marker (``before[0]``, NaN where not: a checked pair's point or a
-    place carried by :func:`carry`) and three of its neighbours in both frames (``before[1]``: checked pairs'
+    place carried by :func:`pipeline.places.carry`) and three of its neighbours in both frames (``before[1]``: checked pairs'
     points only), its previous place moved by their mean motion; otherwise a local affine map of the design
     plane, fitted to its immediate neighbours or, where those are too few, to the neighbours within 2.5
     pitches (over which a press bends the skin more: a bent fit misses the marker's point, and no pair is
@@ -171,11 +233,11 @@ def _predicted(want: np.ndarray, lat, space: np.ndarray, before: tuple) -> tuple
     before, measured = before
     for k, i in enumerate(want.tolist()):
         if np.isfinite(before[i, 0]):
-            p = _moved(i, before[i], lat, space, measured)
+            p = moved_with_neighbours(i, before[i], lat, space, measured)
             if p is not None:
                 out[k], moved[k] = p, True
                 continue
-        for nb in _neighbour_sets(i, lat, space):
+        for nb in neighbour_sets(i, lat, space):
             A = np.c_[lat.xy[nb] - lat.xy[i], np.ones(len(nb))]
             if np.linalg.svd(A[:, :2] / lat.pitch, compute_uv=False)[-1] < 0.5:   # on one line: no plane
                 continue
@@ -288,49 +350,3 @@ def _resolved(pts: np.ndarray, proposal: np.ndarray, certified: np.ndarray, reas
     certified = certified.copy()
     certified[settled] = proposal[settled]
     return certified, unsettled
-
-
-@dataclass(frozen=True)
-class Places:
-    """Markers in space after a frame, for the next frame's predictions by motion: ``ids`` (N,), ``xyz_mm``
-    (N, 3) and ``age`` (N,): 0 for the frame's checked pairs, k for a place carried k frames since the marker's
-    last checked pair (:func:`carry`)."""
-
-    ids: np.ndarray
-    xyz_mm: np.ndarray
-    age: np.ndarray
-
-
-def carry(previous: Places | None, cloud, design: SensorDesign) -> Places:
-    """The frame's checked pairs ``cloud`` (``.ids``, ``.xyz_mm``) as :class:`Places`, with the markers ``previous``
-    placed and the frame did not pair carried on (:data:`CARRY_FRAMES`): each moved by the mean motion of its design
-    neighbours that are checked pairs in both (three at least: immediate neighbours, else those within 2.5
-    pitches). A view drops a marker for a frame (a glare spot, a spurious blob merged with it), and without a
-    place the next frame has only the design's affine map of its neighbours to propose it with, which a crest
-    that crowds the pins bends by most of a separation."""
-    ids = np.asarray(cloud.ids, np.int64)
-    xyz = np.asarray(cloud.xyz_mm, np.float64)
-    age = np.zeros(len(ids), np.int64)
-    if previous is None or len(previous.ids) == 0 or len(ids) == 0:
-        return Places(ids, xyz, age)
-    paired = np.zeros(max(int(ids.max()), int(previous.ids.max())) + 1, bool)
-    paired[ids] = True
-    go = ~paired[previous.ids] & (previous.age < CARRY_FRAMES)
-    if not go.any():                        # every marker placed before is paired again (a clean frame)
-        return Places(ids, xyz, age)
-    lat = lattice_of(design)
-    n = len(lat.xy)
-    now, then = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
-    now[ids] = xyz
-    measured = previous.age == 0
-    then[previous.ids[measured]] = previous.xyz_mm[measured]
-    add_ids, add_xyz, add_age = [], [], []
-    for i, p, a in zip(previous.ids[go].tolist(), previous.xyz_mm[go], previous.age[go].tolist()):
-        q = _moved(i, p, lat, now, then)
-        if q is not None:
-            add_ids.append(i)
-            add_xyz.append(q)
-            add_age.append(a + 1)
-    if not add_ids:
-        return Places(ids, xyz, age)
-    return Places(np.r_[ids, add_ids], np.vstack([xyz, add_xyz]), np.r_[age, add_age])

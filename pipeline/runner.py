@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.design import SensorDesign
-from pipeline.cross_view import across_views, carry
+from pipeline.cross_view import across_views
+from pipeline.places import carry
 from pipeline.errors import UserError
 from pipeline.geometry.refraction import RefractionError, correct_exact, correct_linear, project_through_stack
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
@@ -184,7 +185,7 @@ class Reconstructor:
         self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
         self._stereo_reasons: dict[int, str] = {}
-        self._last_places = None      # the previous frame's markers in space (cross_view.Places)
+        self._last_places = None      # the previous frame's markers in space (places.Places)
         if isinstance(reference, MarkerCloud):
             self._reference = reference
         elif isinstance(reference, StereoFrame):

@@ -221,11 +221,11 @@ def test_a_crowded_press_sequence_is_completed_from_the_markers_motion(monkeypat
 def test_a_marker_a_view_dropped_for_a_frame_keeps_its_place_in_space(monkeypatch):
     """The same six sequences. A marker either view dropped in a frame (3 % missing blobs per view) has no pair
     there, so the next frame could only propose it by the design's affine map of its neighbours, which the
-    crowding crests bend: carried in space by its neighbours' motion (``cross_view.carry``), it is placed by its
+    crowding crests bend: carried in space by its neighbours' motion (``places.carry``), it is placed by its
     motion instead. Measured: no wrong pair; at 3, 4 and 5 mm 99.71, 99.71 and 99.56 % of the markers paired on
     average (5 mm: 99.1 % the least), against 96.9, 96.0 and 94.8 % (5 mm: 91.2 % the least) with nothing carried."""
     import pipeline.runner as runner
-    from pipeline.cross_view import carry
+    from pipeline.places import carry
 
     design = load_design("square121")
     calib = nominal_calibration(design)
@@ -243,7 +243,7 @@ def test_a_carried_place_moves_with_its_neighbours_and_expires():
     """``carry``: a marker the frame did not pair is moved by the mean motion of its design neighbours paired in both
     frames, its age counts the frames since its last pair, and after ``CARRY_FRAMES`` it is dropped; a marker paired
     again takes its new point."""
-    from pipeline.cross_view import CARRY_FRAMES, carry
+    from pipeline.places import CARRY_FRAMES, carry
     from pipeline.types import MarkerCloud
     from pipeline.vision.identity import lattice_of
 
@@ -301,80 +301,3 @@ def test_a_view_s_ambiguity_is_settled_by_the_other_view_s_rays(side, monkeypatc
     assert len(j) == 1 and np.allclose(m.left_px[j[0]], left[i]) and np.allclose(m.right_px[j[0]], right[i])
     monkeypatch.setattr(cross_view, "_resolved", lambda pts, proposal, certified, *a: (certified, proposal < -1))
     assert i not in Reconstructor(design, calib, view_threads=1).identify(view, _blobs(right)).ids
-
-
-def _dragged_tip_sequence(design, seed):
-    """The sequence search's draw ``seed`` (module notes of the xfail below): a Gaussian tip deepened 1 mm a frame
-    while it slides, read frame by frame through one runner; wrong pairs per frame."""
-    from benchmarks.experiments.identification import score_pairs, stereo_views_with_defects
-
-    calib = nominal_calibration(design)
-    rng = np.random.default_rng(seed)
-    sigma, (cx, cy), slide, rate, lateral = (rng.uniform(1.0, 6.0), rng.uniform(-5, 5, 2), rng.uniform(0, 2.0, 2),
-                                             rng.uniform(0, 0.1), rng.uniform(0, 0.5))
-    rec = Reconstructor(design, calib, view_threads=1)
-    wrong = []
-    for k in range(1, 6):
-        xyz = gaussian_press_markers(design, float(k), sigma_mm=sigma, centre_xy_mm=(cx + slide[0] * k, cy + slide[1] * k),
-                                     lateral=lateral)
-        sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, rate, 0.2)
-        wrong.append(score_pairs(rec.identify(_blobs(sides[0][0]), _blobs(sides[1][0])), sides)["wrong"])
-    return wrong
-
-
-def test_a_pair_is_not_placed_by_its_motion_between_two_blobs_the_geometry_allows(monkeypatch):
-    """hexagon217_sep180 under a σ = 1.54 mm Gaussian slid (0.93, 1.20) mm a frame, 8.8 % defects (the sequence
-    search's draw 5091). At 3 mm the left view lacks marker 159, whose blob stands 4.3 px from a spurious blob (the
-    search draws them down to a quarter of the local spacing apart); the left view's rule finds the slot ambiguous.
-    The tip, dragged, deepened the marker 0.75 mm beyond its neighbours' motion, so its prediction by motion lies
-    0.78 mm from its true point and 0.43 mm from the spurious blob's pair (gate 0.54 mm): the one pair within the
-    motion gate was the spurious blob's. Both blobs' rays meet the marker's
-    right ray inside the gel, so the geometry does not settle the ambiguity and the pair is not taken by its
-    motion: no wrong pair (one at 3 mm when it is)."""
-    import pipeline.cross_view as cross_view
-
-    design = load_design("hexagon217_sep180")
-    assert _dragged_tip_sequence(design, 5091) == [0] * 5
-    real = cross_view._resolved
-
-    def settled_only(*a):
-        certified, unsettled = real(*a)
-        return certified, np.zeros_like(unsettled)
-
-    monkeypatch.setattr(cross_view, "_resolved", settled_only)
-    assert _dragged_tip_sequence(design, 5091) == [0, 0, 1, 0, 0]
-
-
-@settings(derandomize=True, database=None, max_examples=25, deadline=None,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(name=st.sampled_from(["hexagon61_sep354", "hexagon127", "hexagon217_sep180", "square121", "circular217_dome"]),
-       seed=st.integers(0, 2**32 - 1), sigma=st.floats(2.0, 6.0), cx=st.floats(-4.0, 4.0), cy=st.floats(-4.0, 4.0),
-       slide=st.floats(0.0, 1.5), rate=st.floats(0.0, 0.08))
-def test_no_wrong_pair_is_placed_by_the_markers_motion(name, seed, sigma, cx, cy, slide, rate):
-    """Property: an analytic press deepened 1 mm a frame to 4 mm while its centre slides up to 1.5 mm a frame,
-    read frame by frame through one runner with different missing and spurious blobs in each view every frame
-    (up to 8 % each): no frame has a wrong pair."""
-    from benchmarks.experiments.identification import score_pairs, stereo_views_with_defects
-
-    design = load_design(name)
-    calib = nominal_calibration(design)
-    rng = np.random.default_rng(seed)
-    rec = Reconstructor(design, calib, view_threads=1)
-    for k in range(1, 5):
-        xyz = gaussian_press_markers(design, float(k), sigma_mm=sigma, centre_xy_mm=(cx + slide * k, cy))
-        sides = stereo_views_with_defects(project_through_stack(xyz, calib, design), rng, rate, 0.2)
-        assert score_pairs(rec.identify(_blobs(sides[0][0]), _blobs(sides[1][0])), sides)["wrong"] == 0
-
-
-@pytest.mark.xfail(strict=True, reason="known wrong id: a sharp tip dragged 2 mm a frame moves the marker under it "
-                   "0.4 spacings off its neighbours' motion, onto a spurious blob there")
-def test_no_wrong_pair_under_a_sharp_tip_dragged_across_the_skin():
-    """Found by a search beyond the benchmark's presses (600 analytic sequences: σ 1-6 mm deepened 1 mm a frame while
-    sliding up to 2 mm a frame, 0-10 % missing + spurious blobs per view and frame): hexagon217_sep180 under a
-    σ = 1.30 mm Gaussian slid (1.95, 0.44) mm a frame, 7.1 % defects. At 4 mm the left view's frame-to-frame map
-    gives marker 93's id to a spurious blob 0.43 separations from its blob (the single-frame rule leaves that blob
-    open), and the stereo check keeps the pair: its rays meet the right view's marker 93 inside the gel. The
-    benchmark's sharpest press (σ² = 5/3, σ = 1.29 mm) is not slid; the tracking experiment's slides are under
-    letters, not a point."""
-    wrong = _dragged_tip_sequence(load_design("hexagon217_sep180"), 1748886452)
-    assert sum(wrong) == 0, wrong

@@ -338,7 +338,10 @@ def test_a_first_frame_read_from_rest_leaves_open_what_ring_coding_found_ambiguo
     """circular217 pressed 4.4 mm (sigma 3.8 mm, 3.3 mm off the axis): in the right view ring coding leaves marker
     166 open, a spurious blob standing 0.33 separations from it ("two blobs near its predicted position"). The
     reading from the rest pattern, which extends ring coding's, must not settle that slot: it gave the spurious
-    blob the id, and the stereo check kept the pair with the left view's marker 166."""
+    blob the id, and the stereo check kept the pair with the left view's marker 166. 199 of the 203 markers present
+    in both views are paired (200 before an id the rest pattern's motion alone gave was left open where another free
+    blob near it meets the other view's marker too, ``pipeline.cross_view._motion_settled``, which also leaves the
+    spurious blob's id open where the reading from rest is let settle the slot)."""
     import importlib
 
     tracking = importlib.import_module("pipeline.vision.dtrc.tracking")
@@ -351,8 +354,10 @@ def test_a_first_frame_read_from_rest_leaves_open_what_ring_coding_found_ambiguo
         return run_trial(design, "press_first_frame", rng, calib)
 
     rec = trial()
-    assert rec["wrong"] == 0 and rec["correct"] >= 200 and rec["present"] == 203
+    assert rec["wrong"] == 0 and rec["correct"] >= 199 and rec["present"] == 203
     monkeypatch.setattr(tracking, "_keep_ambiguous", lambda coding, again: again)
+    assert trial()["wrong"] == 0            # the id the rest pattern's motion gave is left open across the views
+    monkeypatch.setattr(importlib.import_module("pipeline.cross_view"), "_motion_settled", lambda pts, coding, *a: coding)
     assert trial()["wrong"] == 1
 
 

@@ -46,6 +46,11 @@ class RingCoding:
         frame-to-frame motion and this frame's certainty rule disagreed widely, in which case only
         their agreement is in ``ids`` and ``carried`` is the frame-to-frame reading (neither is
         emitted alone; the next frame keeps testing one against the other).
+    by_motion : (N,) bool
+        Blobs whose id only the markers' motion from earlier frames gave (the frame-to-frame map or
+        re-acquisition; this frame's certainty rule left them open). Such an id rests on the marker
+        moving as its neighbours do, which a sharp tip dragged across the skin breaks; the stereo
+        geometry is asked again about it (:mod:`pipeline.cross_view`).
     """
 
     ids: np.ndarray
@@ -57,10 +62,13 @@ class RingCoding:
     messages: tuple[str, ...] = ()
     unmatched_reasons: tuple[str, ...] = ()
     carried: np.ndarray | None = None
+    by_motion: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.carried is None:
             object.__setattr__(self, "carried", self.ids)
+        if self.by_motion is None:
+            object.__setattr__(self, "by_motion", np.zeros(len(self.ids), bool))
 
     @property
     def complete(self) -> bool:
@@ -189,8 +197,8 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
     if history is not None:
         history = [(np.asarray(h[0], np.float64).reshape(-1, 2), np.asarray(h[1], np.int64),
                     *([np.asarray(h[2], bool)] if len(h) > 2 else [])) for h in history]
-    ids, reason, followed = _certain_ids(pts, ids, design, failed, msgs, previous, history, rest_before)
+    ids, reason, followed, by_motion = _certain_ids(pts, ids, design, failed, msgs, previous, history, rest_before)
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
                       tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched),
-                      ids if followed is None else followed)
+                      ids if followed is None else followed, None if by_motion is None else by_motion & (ids >= 0))

@@ -52,12 +52,15 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     (:func:`pipeline.vision.identity.frame_to_frame`), and markers lost before it are re-acquired from
     the earlier frames ``history`` (:func:`pipeline.vision.identity.reacquire.reacquire`).
     ``rest_before``: the frame before the previous one in ``previous`` is the rest pattern (see
-    :func:`~pipeline.vision.dtrc.coding.code_rings`). Returns (certified id per blob, reason code per design id)."""
+    :func:`~pipeline.vision.dtrc.coding.code_rings`). Returns (certified id per blob, reason code per design id,
+    the frame-to-frame reading kept from the output (:func:`_with_frame_to_frame`) or None, and which blobs
+    took their id from the markers' motion alone (the frame-to-frame map or re-acquisition, where this frame's
+    rule left them open) or None where none could)."""
     lat = lattice_of(design)
     n_slots = len(lat.xy)
     reason = np.full(n_slots, R_NO_BLOB, np.int64)
     if len(pts) < 4:
-        return np.full(len(pts), -1, np.int64), reason, None
+        return np.full(len(pts), -1, np.int64), reason, None, None
     if int((proposal >= 0).sum()) == n_slots:
         # ring coding identified every marker (the common case, pressed frames included): the
         # certainty rule need only confirm it, in one compiled pass when there is no other blob
@@ -65,12 +68,12 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             if defects:
                 msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
             reason[:] = 0
-            return proposal.copy(), reason, None
+            return proposal.copy(), reason, None, None
         ids = certify(pts, proposal, lat, reason)
         if int((ids >= 0).sum()) == n_slots:
             if defects:
                 msgs.append(f"certainty rule: {n_slots} of {n_slots} ids certain")
-            return ids, reason, None
+            return ids, reason, None, None
         reason[:] = R_NO_BLOB
     # Each proposal is made locally consistent, grown and certified on its own (a wrong proposal
     # must not spoil a right one); the two best certified results are merged and certified again.
@@ -117,14 +120,16 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
             reason[ids[bad]] = R_CONTRADICTED
             ids[bad] = -1
             msgs.append(f"withdrew {int(bad.sum())} id(s) that the previous frame's markers contradict")
-    followed = None
+    followed, by_motion = None, None
     if previous is not None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
+        open_ = ids < 0
         ids, reason, followed = _with_frame_to_frame(previous, pts, ids, rule_ids, reason, lat, msgs, rest_before)
         if history and followed is None and int((ids >= 0).sum()) < min(n_slots, len(pts)):
             back = reacquire(history, ids, pts, lat.nbr)
             if (back >= 0).any():
                 ids = np.where(back >= 0, back, ids)
                 msgs.append(f"re-acquired {int((back >= 0).sum())} marker(s) lost in earlier frames")
+        by_motion = open_ & (ids >= 0)
     if lat.translation_lattice and int((ids >= 0).sum()) < min(n_slots, len(pts)):
         rows = extend_rows(pts, ids, lat, reason)
         if rows is not ids:
@@ -134,7 +139,7 @@ def _certain_ids(pts: np.ndarray, proposal: np.ndarray, design: SensorDesign, de
     n_certified = int((ids >= 0).sum())
     if defects or n_certified < n_slots:
         msgs.append(f"certainty rule: {n_certified} of {n_slots} ids certain")
-    return ids, reason, followed
+    return ids, reason, followed, by_motion
 
 
 def _settled(pts: np.ndarray, best: tuple, merged: np.ndarray, lat) -> bool:
