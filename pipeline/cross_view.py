@@ -114,8 +114,12 @@ def across_views(blobs: tuple[Blobs, Blobs], codings: tuple, design: SensorDesig
         return codings
     space, before = _in_space(blobs, lc, rc, lat, locate, previous)
     if settle:
+        was = (lc.ids, rc.ids)
         lc, rc = (_motion_settled(blobs[0].xy_px, lc, blobs[1].xy_px, rc, True, lat, space, before, locate),
                   _motion_settled(blobs[1].xy_px, rc, blobs[0].xy_px, lc, False, lat, space, before, locate))
+        for old, new in zip(was, (lc.ids, rc.ids)):
+            if new is not old:                  # an id left open is not a marker placed in space either
+                space[_only_in(old, new, len(lat.xy))] = np.nan
         todo = [_only_in(b.ids, a.ids, len(lat.xy)) for a, b in ((lc, rc), (rc, lc))]
     left = _complete(blobs[0].xy_px, lc, todo[0], blobs[1].xy_px, rc, True, lat, space, before, locate)
     right = _complete(blobs[1].xy_px, rc, todo[1], blobs[0].xy_px, lc, False, lat, space, before, locate)
