@@ -227,9 +227,9 @@ def _predicted(want: np.ndarray, lat, space: np.ndarray, before: tuple) -> tuple
     """(len(want), 3) where each marker's identified design neighbours put it in space (NaN where fewer
     than three of them, not on one line, have a 3-D point), and (len(want),) whether that is by its motion:
     where the previous frame placed the marker (``before[0]``, NaN where not: a checked pair's point or a
-    place carried by :func:`pipeline.places.carry`) and three of its neighbours in both frames (``before[1]``: checked pairs'
-    points only), its previous place moved by their mean motion; otherwise a local affine map of the design
-    plane, fitted to its immediate neighbours or, where those are too few, to the neighbours within 2.5
+    place carried by :func:`pipeline.places.carry`) and three of its neighbours in both frames (``before[1]``:
+    checked pairs' points only), its previous place moved by their mean motion; otherwise a local affine map of
+    the design plane, fitted to its immediate neighbours or, where those are too few, to the neighbours within 2.5
     pitches (over which a press bends the skin more: a bent fit misses the marker's point, and no pair is
     proposed)."""
     out = np.full((len(want), 3), np.nan)

@@ -3,12 +3,12 @@ runner's previous frame in space, with the markers it did not pair carried on.
 
 A marker's previous 3-D point moved by the mean motion of its design neighbours placed in both frames predicts
 its point now (:func:`moved_with_neighbours`): on the twin's narrow-sine presses from rest within 0.12-0.21
-separations at every frame, where the design's affine map errs by up to 0.85 at 5 mm. That holds where the neighbours moved alike
-(:func:`moved_alike`, :data:`MOTION_SPREAD`); a tip dragged across the skin moves the neighbours on its two sides
-apart, and the marker under it with neither. A view drops a marker for a frame (a glare spot, a spurious blob
-merged with it): its place is carried by its neighbours' motion for :data:`CARRY_FRAMES` frames (:func:`carry`), so
-that it is still predicted by its motion when it is seen again. :mod:`pipeline.cross_view` takes pairs on this
-evidence.
+separations at every frame, where the design's affine map errs by up to 0.85 at 5 mm. That holds where the
+neighbours moved alike (:func:`moved_alike`, :data:`MOTION_SPREAD`); a tip dragged across the skin moves the
+neighbours on its two sides apart, and the marker under it with neither. A view drops a marker for a frame (a glare
+spot, a spurious blob merged with it): its place is carried by its neighbours' motion for :data:`CARRY_FRAMES`
+frames (:func:`carry`), so that it is still predicted by its motion when it is seen again.
+:mod:`pipeline.cross_view` takes pairs on this evidence.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ import numpy as np
 from pipeline.design import SensorDesign
 from pipeline.vision.identity import lattice_of
 
-__all__ = ["CARRY_FRAMES", "MOTION_SPREAD", "Places", "carry", "moved_alike", "moved_with_neighbours", "neighbour_sets"]
+__all__ = ["CARRY_FRAMES", "MOTION_SPREAD", "Places", "carry", "moved_alike", "moved_with_neighbours",
+           "neighbour_sets"]
 
 #: A marker's neighbours moved alike when each moved within this many separations of their mean motion: then that
 #: motion places the marker. An id that only the markers' motion gave, with another free blob near it whose rays meet
@@ -49,25 +50,26 @@ def neighbour_sets(i: int, lat, *placed: np.ndarray):
             yield nb
 
 
-def moved_with_neighbours(i: int, place: np.ndarray, lat, now: np.ndarray, then: np.ndarray) -> np.ndarray | None:
+def moved_with_neighbours(i: int, place: np.ndarray, lat, now: np.ndarray, then: np.ndarray,
+                          spread: float | None = None) -> np.ndarray | None:
     """Marker ``i``'s ``place`` in the frame before moved by the mean motion of its design neighbours placed in both
-    frames (``then`` -> ``now``, (N, 3), NaN where not; three at least, :func:`neighbour_sets`); None where too few."""
+    frames (``then`` -> ``now``, (N, 3), NaN where not; three at least, :func:`neighbour_sets`); None where too few,
+    or, with ``spread`` (separations), where one of them moved farther than that from their mean motion."""
     nb = next(neighbour_sets(i, lat, now, then), None)
-    return None if nb is None else place + (now[nb] - then[nb]).mean(axis=0)
+    if nb is None:
+        return None
+    motion = now[nb] - then[nb]
+    mean = motion.mean(axis=0)
+    if spread is not None and np.linalg.norm(motion - mean, axis=1).max() > spread * lat.pitch:
+        return None
+    return place + mean
 
 
 def moved_alike(i: int, before: tuple, lat, space: np.ndarray) -> np.ndarray | None:
-    """Marker ``i``'s previous point moved by the mean motion of its design neighbours placed in both frames
-    (:func:`moved_with_neighbours`), where they moved alike: each within :data:`MOTION_SPREAD` separations of their
-    mean motion; None otherwise (or with fewer than three of them)."""
-    nb = next(neighbour_sets(i, lat, space, before[1]), None)
-    if nb is None:
-        return None
-    motion = space[nb] - before[1][nb]
-    mean = motion.mean(axis=0)
-    if np.linalg.norm(motion - mean, axis=1).max() > MOTION_SPREAD * lat.pitch:
-        return None
-    return before[0][i] + mean
+    """Marker ``i``'s previous point (``before[0]``) moved by the mean motion of its design neighbours placed in both
+    frames (``before[1]`` -> ``space``) where they moved alike: each within :data:`MOTION_SPREAD` separations of
+    their mean motion (:func:`moved_with_neighbours`); None otherwise (or with fewer than three of them)."""
+    return moved_with_neighbours(i, before[0][i], lat, space, before[1], MOTION_SPREAD)
 
 
 @dataclass(frozen=True)

@@ -201,4 +201,4 @@ def code_rings(blobs: Blobs, design: SensorDesign, *, previous: tuple[np.ndarray
     unmatched = _unmatched(ids, len(xy_d))
     return RingCoding(ids, ring_of, found, expected, unmatched, edges, tuple(msgs),
                       tuple(REASONS.get(int(reason[i]), REASONS[R_NO_BLOB]) for i in unmatched),
-                      ids if followed is None else followed, None if by_motion is None else by_motion & (ids >= 0))
+                      ids if followed is None else followed, by_motion)
