@@ -45,11 +45,20 @@ def camera_poses(calib: StereoCalibration) -> tuple[np.ndarray, np.ndarray]:
 
     OpenCV's stereo convention is X_right = R X_left + T, so right_from_left = [R | T] and
     sensor_from_right = sensor_from_left @ inv(right_from_left).
+
+    Worked out once per calibration (its arrays are read-only) and kept on it: the stereo check, the
+    cross-view completion and triangulation ask for them several times a frame. Returned read-only.
     """
-    right_from_left = np.eye(4)
-    right_from_left[:3, :3] = calib.R
-    right_from_left[:3, 3] = calib.T
-    return calib.sensor_from_left.copy(), calib.sensor_from_left @ np.linalg.inv(right_from_left)
+    hit = calib.__dict__.get("_camera_poses")
+    if hit is None:
+        right_from_left = np.eye(4)
+        right_from_left[:3, :3] = calib.R
+        right_from_left[:3, 3] = calib.T
+        hit = (calib.sensor_from_left.copy(), calib.sensor_from_left @ np.linalg.inv(right_from_left))
+        for a in hit:
+            a.setflags(write=False)
+        calib.__dict__["_camera_poses"] = hit     # a frozen dataclass: cached beside its fields
+    return hit
 
 
 @numba.njit(cache=True, nogil=True)
