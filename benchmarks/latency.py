@@ -106,7 +106,8 @@ def _with_defects(frame, design, calib, xyz: np.ndarray, rate: float, rng: np.ra
 
 
 def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generator, n_distinct_frames: int,
-                 progress: bool, view_threads: int | None = None, defects: float = 0.0) -> dict:
+                 progress: bool, view_threads: int | None = None, defects: float = 0.0,
+                 view_process: bool = False) -> dict:
     """One design's timing in :func:`run_latency`: ``n_frames`` synthetic press frames through a fresh
     runner, each preceded by the reference job, after one warm-up frame."""
     from tqdm import tqdm
@@ -118,7 +119,7 @@ def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generato
         xyz = gaussian_press_markers(design, float(d), sigma_mm=4.0)
         frame = synth_stereo_frame(design, calib, xyz, rng=rng, index=k)
         frames.append(_with_defects(frame, design, calib, xyz, defects, rng) if defects > 0 else frame)
-    rec = Reconstructor(design, calib, refraction=refraction, view_threads=view_threads)
+    rec = Reconstructor(design, calib, refraction=refraction, view_threads=view_threads, view_process=view_process)
     stages: dict[str, list[float]] = {}
     matched = []
     reference = []
@@ -130,6 +131,9 @@ def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generato
         for stage, ms in res.timings_ms.items():
             stages.setdefault(stage, []).append(ms)
         matched.append(res.n_matched)
+    if rec.view_process_error:
+        raise RuntimeError(f"latency {design.name}: {rec.view_process_error}")
+    rec.close()
     return {
         "markers": design.marker_count,
         "matched_min": int(min(matched)), "matched_median": float(np.median(matched)),
@@ -142,7 +146,8 @@ def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generato
 def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome"), n_frames: int = 200,
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
                 n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0,
-                nice: int | None = None, view_threads: int | None = None, defects: float = 0.0) -> dict:
+                nice: int | None = None, view_threads: int | None = None, defects: float = 0.0,
+                view_process: bool = False) -> dict:
     """Time the whole runner per stage on synthetic frames (the runner holds BLAS, OpenMP and
     OpenCV at one thread per frame: :mod:`pipeline.threads`).
 
@@ -157,6 +162,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
     nice : the frames are processed at this niceness (:func:`pipeline.priority.frame_priority`; None: the
         process's own); the spinning processes keep theirs
     view_threads : 1 or 2 (the runner's ``view_threads``; None: its default, 2 on two or more CPUs)
+    view_process : the right view in a worker process (the runner's ``view_process``), not on a thread
     defects : fraction of the markers hidden, and as many spurious blobs added, in each view of each frame
         (:func:`_with_defects`; 0 = clean frames)
 
@@ -172,6 +178,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
                     "refraction": refraction, "seed": seed, "opencv_threads": 1,
                     "background_procs": int(background_procs), "defects": float(defects),
                     "view_threads": default_view_threads() if view_threads is None else int(view_threads),
+                    "view_process": bool(view_process),
                     "machine": {"python": platform.python_version(), "processor": platform.processor() or platform.machine(),
                                 "cpu_count": os.cpu_count(), "opencv": cv2.__version__, "numpy": np.__version__},
                     "designs": {}}
@@ -181,7 +188,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
             result["niceness"] = niceness
             for name in design_names:
                 result["designs"][name] = _time_design(load_design(name), n_frames, refraction, rng,
-                                                       n_distinct_frames, progress, view_threads, float(defects))
+                                                       n_distinct_frames, progress, view_threads, float(defects),
+                                                       bool(view_process))
     finally:
         cv2.setNumThreads(threads)
         for proc in load:

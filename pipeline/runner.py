@@ -18,6 +18,7 @@ from pipeline.places import carry
 from pipeline.errors import UserError
 from pipeline.geometry.refraction import RefractionError, correct_exact, correct_linear, project_through_stack
 from pipeline.geometry.surface import MIN_MARKERS, height_map, skin_surface
+from pipeline.view_process import RightView
 from pipeline.threads import VIEW_THREADS, ViewPolicy, both_views, default_view_threads, one_thread
 from pipeline.geometry.triangulation import matched_rays, triangulate
 from pipeline.types import Blobs, HeightMap, MarkerCloud, MarkerMatches, SkinSurface, StereoCalibration, StereoFrame
@@ -151,12 +152,14 @@ class Reconstructor:
         2: the right view is detected and identified on a worker thread while the calling thread does the
         left (:func:`pipeline.threads.both_views`; identical results); 1: both on the calling thread.
         Default: 2 where the process may use two or more CPUs.
+    view_process : bool, optional
+        The right view in a worker process (:mod:`pipeline.view_process`: for views with defects; DTRC only).
     """
 
     def __init__(self, design: SensorDesign, calib: StereoCalibration, *, refraction: str = "exact",
                  n_gel: float | None = None, tracker: str = "dtrc", reference: StereoFrame | MarkerCloud | None = None,
                  detection_params=None, with_height_map: bool = False, height_map_step_mm: float = 0.25,
-                 view_threads: int | None = None) -> None:
+                 view_threads: int | None = None, view_process: bool = False) -> None:
         if refraction not in REFRACTION_MODES:
             raise RunnerError(f"refraction mode {refraction!r}: choose one of {REFRACTION_MODES}")
         if tracker not in TRACKERS:
@@ -177,8 +180,10 @@ class Reconstructor:
         self._detection_params = detection_params if detection_params is not None else detection.DetectionParams()
         self._narrow = detection_params is None       # narrow the scales once the marker size is known
         self._match_stereo = dtrc.match_stereo
-        self._tracker = (dtrc.DTRCTracker(design, rest=_rest_px(design, calib)) if tracker == "dtrc"
+        rest = _rest_px(design, calib)
+        self._tracker = (dtrc.DTRCTracker(design, rest=rest) if tracker == "dtrc"
                          else dtrc.NearestNeighbourTracker(design))
+        self._right = RightView(design, rest) if view_process and tracker == "dtrc" else None   # a worker process
         self.with_height_map = with_height_map
         self.height_map_step_mm = height_map_step_mm
         self._all_ids = np.arange(design.marker_count, dtype=np.int64)
@@ -267,14 +272,24 @@ class Reconstructor:
             return self._tracker.update(left, right)
         if codings is None:
             codings = (self._tracker.code_view(0, left), self._tracker.code_view(1, right))
-        return self._tracker.commit(left, right, across_views((left, right), codings, self.design, self._locate,
-                                                              self._last_places))
+        completed = across_views((left, right), codings, self.design, self._locate, self._last_places)
+        matches = self._tracker.commit(left, right, completed)
+        if self._right is not None:       # the worker's tracker follows this one's
+            self._right.repeat("commit", left, right, completed)
+        return matches
+
+    @property
+    def view_process_error(self) -> str | None:
+        """Why the view worker process was stopped (the right view then coded here), or None."""
+        return self._right and self._right.error
 
     def _checked(self, matches: MarkerMatches) -> tuple[MarkerMatches, np.ndarray, MarkerCloud, tuple]:
         """:meth:`_stereo_check`, and the rejected ids not carried into the next frame as certain."""
         out = self._stereo_check(matches)
         if len(out[1]) and hasattr(self._tracker, "forget"):
             self._tracker.forget(out[1])
+            if self._right is not None:
+                self._right.repeat("forget", out[1])      # the worker's tracker too
         self._last_places = carry(self._last_places, out[2], self.design)
         return out
 
@@ -295,9 +310,14 @@ class Reconstructor:
 
     def _match(self, frame: StereoFrame) -> tuple[MarkerMatches, tuple[int, int], dict[str, float]]:
         t0 = time.perf_counter()
-        threads, waited = self._views.next(), []
-        (left, lc, ld, lm), (right, rc, rd, rm) = both_views(self._view, frame.left, frame.right,
-                                                             threads=threads, waited=waited)
+        if self._right is not None:
+            (left, lc, ld, lm), (right, rc, rd, rm) = self._right.both(self._view, frame.left, frame.right,
+                                                                       self._detection_params)
+            waited = []
+        else:
+            threads, waited = self._views.next(), []
+            (left, lc, ld, lm), (right, rc, rd, rm) = both_views(self._view, frame.left, frame.right,
+                                                                 threads=threads, waited=waited)
         t1 = time.perf_counter()
         if waited:
             self._views.record(ld + lm, waited[0])
@@ -314,6 +334,11 @@ class Reconstructor:
         # of both views' detection and identification (less than their sum when they overlap)
         return matches, (len(left), len(right)), {"detect": 1e3 * (ld + rd), "match": 1e3 * (lm + rm + t2 - t1),
                                                   "views": 1e3 * (t1 - t0)}
+
+    def close(self) -> None:
+        """Stop the view worker process, if any (also done when the runner is dropped); the runner stays usable."""
+        if self._right is not None:
+            self._right.close()
 
     def process(self, frame: StereoFrame) -> FrameResult:
         """Run all stages on one frame. A frame without enough markers gives an empty result (all ids

@@ -49,9 +49,11 @@ def run(ctx: Context) -> Result:
     nice = ctx.param("nice", None)
     view_threads = ctx.param("view_threads", None)
     defects = float(ctx.param("defects", 0.0))
+    view_process = bool(int(ctx.param("view_process", 0)))      # 1: the right view in a worker process
     raw = run_latency(names, n_frames, ctx.out_dir / "latency_raw", seed=ctx.seed, progress=ctx.progress,
                       background_procs=load, nice=None if nice is None else int(nice),
-                      view_threads=None if view_threads is None else int(view_threads), defects=defects)
+                      view_threads=None if view_threads is None else int(view_threads), defects=defects,
+                      view_process=view_process)
     out = Result(designs=[load_design(n) for n in names])
     medians, p95s, matched, ratios, refs = [], [], [], [], []
     rows = []
@@ -83,7 +85,8 @@ def run(ctx: Context) -> Result:
                      f"views on {raw.get('view_threads', '?')} thread(s) (--param view_threads=1|2; 2: the right "
                      "view detected and identified on a worker thread beside the left; 'detect' and 'match' "
                      "add up both views' work, 'views' is their wall time); "
-                     f"background load: {load} process(es) spinning on a core each "
+                     + ("the right view in a worker process (--param view_process=1); " if view_process else "")
+                     + f"background load: {load} process(es) spinning on a core each "
                      f"(--param background_procs=N); frames processed at niceness {raw.get('niceness', '?')} "
                      "(--param nice=N); "
                      f"refraction '{raw.get('refraction', '?')}'; "

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cv2
@@ -167,10 +168,16 @@ def _reconstruct(args: argparse.Namespace) -> int:
     design = load_design(args.design)
     calib = _load_calib(args.calib)
     rec = Reconstructor(design, calib, refraction=args.refraction, n_gel=args.n_gel, tracker=args.tracker,
-                        view_threads=args.view_threads)
-    with frame_priority(args.nice):
-        summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
-                              preview_every=args.preview_every)
+                        view_threads=args.view_threads, view_process=args.view_process)
+    try:
+        with frame_priority(args.nice):
+            summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
+                                  preview_every=args.preview_every)
+    finally:
+        rec.close()
+    if rec.view_process_error:
+        print(f"reconstruct: the view worker process stopped ({rec.view_process_error}); the right view was coded "
+              "in this process from then on", file=sys.stderr)
     line = f"{summary['frames']} frame(s)"
     if summary["median_total_ms"] is not None:
         line += (f", median {summary['median_total_ms']:.1f} ms/frame (p95 {summary['p95_total_ms']:.1f}; "
@@ -216,6 +223,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--view-threads", type=int, choices=(1, 2), default=None,
                    help="2: the right view detected and identified on a worker thread beside the left (the "
                         "default on two or more CPUs; the same result); 1: both on the frame's thread")
+    p.add_argument("--view-process", action="store_true",
+                   help="the right view detected and identified in a worker process instead (the same result): "
+                        "faster where the views have missing or spurious blobs, slower on clean ones")
     p.add_argument("--nice", type=int, default=None, metavar="N",
                    help="process frames at niceness N (e.g. -10: a larger share of a loaded machine; below the "
                         "current niceness needs root or CAP_SYS_NICE)")

@@ -1,0 +1,214 @@
+"""The right camera view detected and identified in a worker process, for streams whose views carry defects.
+
+Why a process: a view with a missing or spurious blob is not certified whole in one compiled pass, and most of
+its identification is numpy and Python between the compiled kernels. That part holds the GIL, so the view
+worker thread of :mod:`pipeline.threads` runs it one view after the other (circular217, 1 % + 1 % defects:
+21.7 ms a frame on two threads against 23.7 ms on one), while two processes each run at the speed of one.
+
+The worker keeps its own :class:`~pipeline.vision.dtrc.DTRCTracker` and codes only the right view with it. Its
+state stays the runner's own because it is changed by the same calls on the same data, sent in order over one
+pipe: every frame's :meth:`~pipeline.vision.dtrc.DTRCTracker.commit` (both views' blobs and their completed
+codings) and every :meth:`~pipeline.vision.dtrc.DTRCTracker.forget` (the ids the stereo check rejects). The
+runner's tracker still does all of it too, so when the worker fails the runner codes the right view itself
+from then on with nothing lost (:class:`ViewProcessError` says why). The worker is ``python -m
+pipeline.view_process`` on a socket pair (not :mod:`multiprocessing`'s spawn, which imports the caller's main
+script again); the image goes as raw bytes, the blobs and the coding come back pickled (~21 kB a view on
+circular217).
+
+A clean stream gains nothing (its views overlap on two threads already) and pays the round trip; hence the
+runner's ``view_process`` is off by default.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+import weakref
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+from pipeline.errors import UserError
+
+__all__ = ["ViewProcess", "ViewProcessError", "RightView"]
+
+
+class ViewProcessError(UserError, RuntimeError):
+    """The view worker process failed or died; the runner codes the right view itself from then on."""
+
+
+def _serve(conn: Connection) -> None:
+    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params)`` followed by
+    the image's bytes -> ``("ok", (blobs, coding, t_detect, t_identify))`` or ``("error", text)``; ``("commit",
+    left, right, codings)`` and ``("forget", ids)`` change the tracker as the runner's own calls do (no reply);
+    ``None`` or a closed socket ends it. Each view runs at the niceness of the frame thread that sent it."""
+    import cv2
+
+    from pipeline.threads import one_thread
+    from pipeline.vision.detection import detect_markers
+    from pipeline.vision.dtrc import DTRCTracker
+
+    cv2.setNumThreads(1)
+    design, rest, temporal = conn.recv()
+    tracker = DTRCTracker(design, temporal=temporal, rest=rest)
+    broken = None
+    try:
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                return
+            kind = msg[0]
+            try:
+                if kind == "code":
+                    if broken is not None:
+                        conn.recv_bytes()
+                        conn.send(("error", broken))
+                        continue
+                    _, shape, dtype, params, nice = msg
+                    image = np.frombuffer(conn.recv_bytes(), np.dtype(dtype)).reshape(shape)
+                    if nice != os.getpriority(os.PRIO_PROCESS, 0):
+                        try:                   # the frame thread's niceness (``reconstruct --nice``)
+                            os.setpriority(os.PRIO_PROCESS, 0, nice)
+                        except OSError:
+                            pass
+                    with one_thread():
+                        t0 = time.perf_counter()
+                        blobs = detect_markers(image, params=params)
+                        t1 = time.perf_counter()
+                        coding = tracker.code_view(1, blobs)
+                    conn.send(("ok", (blobs, coding, t1 - t0, time.perf_counter() - t1)))
+                elif kind == "commit":
+                    tracker.commit(*msg[1:])
+                elif kind == "forget":
+                    tracker.forget(msg[1])
+            except Exception as exc:          # reported at the next request; the runner then stops using it
+                text = f"view worker: {kind} failed: {type(exc).__name__}: {exc}"
+                if kind == "code":
+                    conn.send(("error", text))
+                broken = broken or text
+    except (EOFError, OSError, KeyboardInterrupt):
+        return
+
+
+def _stop(proc: subprocess.Popen, conn: Connection) -> None:
+    try:
+        conn.send(None)
+    except (OSError, ValueError):
+        pass
+    try:
+        proc.wait(timeout=2.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    conn.close()
+
+
+class ViewProcess:
+    """A worker process that detects and identifies the right view (see the module notes).
+
+    ``submit(image, params)`` starts a view, ``result()`` waits for it: ``(blobs, (coding, read_from_rest),
+    t_detect_s, t_identify_s)`` as :meth:`pipeline.runner.Reconstructor._view` returns them. ``commit`` and
+    ``forget`` must follow every call of the runner's tracker of the same name. ``close()`` (or dropping the
+    object) stops the process. A fresh interpreter, not a fork: a fork of a process running BLAS, OpenCV or numba
+    threads may inherit their locks held; it loads the compiled kernels from numba's cache."""
+
+    def __init__(self, design, rest, *, temporal: bool = True) -> None:
+        mine, theirs = socket.socketpair()
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", "pipeline.view_process", str(theirs.fileno())],
+                                          pass_fds=(theirs.fileno(),))
+        finally:
+            theirs.close()
+        self._conn = Connection(mine.detach())
+        self._finalizer = weakref.finalize(self, _stop, self._proc, self._conn)
+        self._send((design, rest, temporal))
+
+    def submit(self, image: np.ndarray, params) -> None:
+        image = np.ascontiguousarray(image)
+        self._send(("code", image.shape, image.dtype.str, params, os.getpriority(os.PRIO_PROCESS, 0)))
+        try:
+            self._conn.send_bytes(image.reshape(-1).data)
+        except (OSError, ValueError) as exc:
+            raise ViewProcessError(f"view worker: cannot reach the process ({exc})") from None
+
+    def result(self):
+        try:
+            kind, payload = self._conn.recv()
+        except (EOFError, OSError) as exc:
+            raise ViewProcessError(f"view worker: the process ended ({exc or 'pipe closed'})") from None
+        if kind != "ok":
+            raise ViewProcessError(payload)
+        blobs, coding, t_detect, t_identify = payload
+        return blobs, coding, t_detect, t_identify
+
+    def commit(self, left, right, codings) -> None:
+        self._send(("commit", left, right, codings))
+
+    def forget(self, ids: np.ndarray) -> None:
+        self._send(("forget", np.asarray(ids)))
+
+    def _send(self, msg) -> None:
+        try:
+            self._conn.send(msg)
+        except (OSError, ValueError) as exc:
+            raise ViewProcessError(f"view worker: cannot reach the process ({exc})") from None
+
+    def close(self) -> None:
+        self._finalizer()
+
+
+
+class RightView:
+    """The runner's right view: coded by a :class:`ViewProcess` while it works, by the runner's own ``view``
+    function from the first failure on (``error`` says why; the runner's tracker holds the same state, so
+    nothing is lost). ``both`` returns both views' :meth:`~pipeline.runner.Reconstructor._view` results;
+    ``repeat(call, *args)`` repeats a tracker call (``"commit"``, ``"forget"``) in the worker."""
+
+    def __init__(self, design, rest) -> None:
+        self.error: str | None = None
+        self._proc: ViewProcess | None = ViewProcess(design, rest)
+
+    def both(self, view, left_image, right_image, params):
+        if self._proc is None:
+            return view(0, left_image), view(1, right_image)
+        try:
+            self._proc.submit(right_image, params)
+        except Exception as exc:
+            self._drop(exc)
+            return view(0, left_image), view(1, right_image)
+        try:
+            a = view(0, left_image)
+        except BaseException:
+            self._drop(RuntimeError("the left view failed while the worker coded the right"))
+            raise
+        try:
+            return a, self._proc.result()
+        except Exception as exc:
+            self._drop(exc)
+            return a, view(1, right_image)
+
+    def repeat(self, call: str, *args) -> None:
+        if self._proc is not None:
+            try:
+                getattr(self._proc, call)(*args)
+            except Exception as exc:
+                self._drop(exc)
+
+    def _drop(self, exc: Exception) -> None:
+        self.error = str(exc)
+        self.close()
+
+    def close(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            try:
+                proc.close()
+            except Exception:
+                pass
+
+
+if __name__ == "__main__":
+    _serve(Connection(int(sys.argv[1])))
