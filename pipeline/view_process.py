@@ -117,9 +117,12 @@ class ViewProcess:
 
     def __init__(self, design, rest, *, temporal: bool = True) -> None:
         mine, theirs = socket.socketpair()
+        # the worker imports this very package (the checkout the caller runs, installed or not)
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])]))
         try:
             self._proc = subprocess.Popen([sys.executable, "-m", "pipeline.view_process", str(theirs.fileno())],
-                                          pass_fds=(theirs.fileno(),))
+                                          pass_fds=(theirs.fileno(),), env=env)
         finally:
             theirs.close()
         self._conn = Connection(mine.detach())
