@@ -41,8 +41,8 @@ class ViewProcessError(UserError, RuntimeError):
 
 
 def _serve(conn: Connection) -> None:
-    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params)`` followed by
-    the image's bytes -> ``("ok", (blobs, coding, t_detect, t_identify))`` or ``("error", text)``; ``("commit",
+    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params, niceness)``
+    followed by the image's bytes -> ``("ok", (blobs, coding, t_detect, t_identify))`` or ``("error", text)``; ``("commit",
     left, right, codings)`` and ``("forget", ids)`` change the tracker as the runner's own calls do (no reply);
     ``None`` or a closed socket ends it. Each view runs at the niceness of the frame thread that sent it."""
     import cv2
