@@ -131,11 +131,8 @@ class ViewProcess:
 
     def submit(self, image: np.ndarray, params) -> None:
         image = np.ascontiguousarray(image)
-        self._send(("code", image.shape, image.dtype.str, params, os.getpriority(os.PRIO_PROCESS, 0)))
-        try:
-            self._conn.send_bytes(image.reshape(-1).data)
-        except (OSError, ValueError) as exc:
-            raise ViewProcessError(f"view worker: cannot reach the process ({exc})") from None
+        self._send(("code", image.shape, image.dtype.str, params, os.getpriority(os.PRIO_PROCESS, 0)),
+                   raw=image.reshape(-1).data)
 
     def result(self):
         try:
@@ -144,8 +141,7 @@ class ViewProcess:
             raise ViewProcessError(f"view worker: the process ended ({exc or 'pipe closed'})") from None
         if kind != "ok":
             raise ViewProcessError(payload)
-        blobs, coding, t_detect, t_identify = payload
-        return blobs, coding, t_detect, t_identify
+        return payload
 
     def commit(self, left, right, codings) -> None:
         self._send(("commit", left, right, codings))
@@ -153,15 +149,17 @@ class ViewProcess:
     def forget(self, ids: np.ndarray) -> None:
         self._send(("forget", np.asarray(ids)))
 
-    def _send(self, msg) -> None:
+    def _send(self, msg, raw=None) -> None:
+        """Send ``msg`` (pickled), then ``raw`` bytes if given."""
         try:
             self._conn.send(msg)
+            if raw is not None:
+                self._conn.send_bytes(raw)
         except (OSError, ValueError) as exc:
             raise ViewProcessError(f"view worker: cannot reach the process ({exc})") from None
 
     def close(self) -> None:
         self._finalizer()
-
 
 
 class RightView:
