@@ -12,8 +12,11 @@ codings) and every :meth:`~pipeline.vision.dtrc.DTRCTracker.forget` (the ids the
 runner's tracker still does all of it too, so when the worker fails the runner codes the right view itself
 from then on with nothing lost (:class:`ViewProcessError` says why). The worker is ``python -m
 pipeline.view_process`` on a socket pair (not :mod:`multiprocessing`'s spawn, which imports the caller's main
-script again); the image goes as raw bytes, the blobs and the coding come back pickled (~21 kB a view on
-circular217).
+script again). The image is written into a buffer both processes map (an anonymous ``memfd`` handed to the worker
+when it starts) and only its shape goes over the socket: a 640 x 480 view sent as bytes took 0.4-0.6 ms to leave,
+since the socket's buffer is smaller than the view and each refill waits for the worker to be woken to read it
+(where the other CPU has gone idle, a virtual machine wakes it with an interrupt to the host). Without ``memfd``
+(not Linux) the image goes as bytes. The blobs and the coding come back pickled (~21 kB a view on circular217).
 
 A clean stream gains nothing (its views overlap on two threads already) and pays the round trip; hence the
 runner's ``view_process`` is off by default.
@@ -21,6 +24,7 @@ runner's ``view_process`` is off by default.
 
 from __future__ import annotations
 
+import mmap
 import os
 import socket
 import subprocess
@@ -40,9 +44,19 @@ class ViewProcessError(UserError, RuntimeError):
     """The view worker process failed or died; the runner codes the right view itself from then on."""
 
 
-def _serve(conn: Connection) -> None:
-    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params, niceness)``
-    followed by the image's bytes -> ``("ok", (blobs, coding, t_detect, t_identify))`` or ``("error", text)``; ``("commit",
+#: Bytes of the image buffer the two processes share: one BGR 640 x 480 view (a larger image goes as bytes).
+SHARED_IMAGE_BYTES = 640 * 480 * 3
+
+
+def _shared_buffer(fd: int) -> mmap.mmap:
+    """The image buffer of :data:`SHARED_IMAGE_BYTES` on ``fd``, mapped read-write."""
+    return mmap.mmap(fd, SHARED_IMAGE_BYTES)
+
+
+def _serve(conn: Connection, shared: mmap.mmap | None = None) -> None:
+    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params, niceness, in_shared)``
+    followed, unless ``in_shared`` (the image is then in ``shared``), by the image's bytes -> ``("ok", (blobs, coding,
+    t_detect, t_identify))`` or ``("error", text)``; ``("commit",
     left, right, codings)`` and ``("forget", ids)`` change the tracker as the runner's own calls do (no reply);
     ``None`` or a closed socket ends it. Each view runs at the niceness of the frame thread that sent it."""
     import cv2
@@ -63,12 +77,14 @@ def _serve(conn: Connection) -> None:
             kind = msg[0]
             try:
                 if kind == "code":
+                    _, shape, dtype, params, nice, in_shared = msg
+                    raw = shared if in_shared else conn.recv_bytes()
                     if broken is not None:
-                        conn.recv_bytes()
                         conn.send(("error", broken))
                         continue
-                    _, shape, dtype, params, nice = msg
-                    image = np.frombuffer(conn.recv_bytes(), np.dtype(dtype)).reshape(shape)
+                    # a copy: the runner writes the next frame's view into the buffer once this one is answered
+                    size = int(np.prod(shape)) * np.dtype(dtype).itemsize
+                    image = np.frombuffer(raw, np.dtype(dtype), count=size // np.dtype(dtype).itemsize).reshape(shape).copy()
                     if nice != os.getpriority(os.PRIO_PROCESS, 0):
                         try:                   # the frame thread's niceness (``reconstruct --nice``)
                             os.setpriority(os.PRIO_PROCESS, 0, nice)
@@ -120,19 +136,40 @@ class ViewProcess:
         # the worker imports this very package (the checkout the caller runs, installed or not)
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        try:
-            self._proc = subprocess.Popen([sys.executable, "-m", "pipeline.view_process", str(theirs.fileno())],
-                                          pass_fds=(theirs.fileno(),), env=env)
-        finally:
-            theirs.close()
+        fds, args = [theirs.fileno()], [str(theirs.fileno())]
+        self._shared = None
+        if hasattr(os, "memfd_create"):
+            fd = os.memfd_create("stereotactip-view")
+            try:
+                os.ftruncate(fd, SHARED_IMAGE_BYTES)
+                self._shared = _shared_buffer(fd)
+                fds.append(fd)
+                args.append(str(fd))
+                self._start(fds, args, env)
+            finally:
+                os.close(fd)           # both mappings stay valid
+                theirs.close()
+        else:
+            try:
+                self._start(fds, args, env)
+            finally:
+                theirs.close()
         self._conn = Connection(mine.detach())
         self._finalizer = weakref.finalize(self, _stop, self._proc, self._conn)
         self._send((design, rest, temporal))
 
+    def _start(self, fds: list[int], args: list[str], env: dict) -> None:
+        self._proc = subprocess.Popen([sys.executable, "-m", "pipeline.view_process", *args], pass_fds=fds, env=env)
+
     def submit(self, image: np.ndarray, params) -> None:
-        image = np.ascontiguousarray(image)
-        self._send(("code", image.shape, image.dtype.str, params, os.getpriority(os.PRIO_PROCESS, 0)),
-                   raw=image.reshape(-1).data)
+        nice = os.getpriority(os.PRIO_PROCESS, 0)
+        if self._shared is not None and image.nbytes <= SHARED_IMAGE_BYTES:
+            # written in place (a view of a stereo frame is strided: copied row by row into the buffer)
+            np.copyto(np.frombuffer(self._shared, image.dtype, count=image.size).reshape(image.shape), image)
+            self._send(("code", image.shape, image.dtype.str, params, nice, True))
+        else:
+            image = np.ascontiguousarray(image)
+            self._send(("code", image.shape, image.dtype.str, params, nice, False), raw=image.reshape(-1).data)
 
     def result(self):
         try:
@@ -212,4 +249,4 @@ class RightView:
 
 
 if __name__ == "__main__":
-    _serve(Connection(int(sys.argv[1])))
+    _serve(Connection(int(sys.argv[1])), _shared_buffer(int(sys.argv[2])) if len(sys.argv) > 2 else None)

@@ -94,3 +94,32 @@ def test_reconstruct_cli_with_the_view_process(tmp_path):
     for k in range(len(frames)):
         name = f"markers_{k:04d}.csv"
         assert (tmp_path / "thread" / name).read_bytes() == (tmp_path / "process" / name).read_bytes(), name
+
+
+def test_the_worker_reads_a_view_from_the_shared_buffer_and_a_larger_one_as_bytes():
+    """A strided right half of a stereo frame goes through the buffer both processes map; an image larger than
+    that buffer goes over the socket as bytes. The worker's blobs equal the detector's in this process either way,
+    and a buffer written again for the next view is read anew (the worker copies each view out)."""
+    import os
+
+    import pipeline.view_process as vp
+    from pipeline.vision.detection import DetectionParams, detect_markers
+
+    if not hasattr(os, "memfd_create"):
+        pytest.skip("no memfd on this platform: every view goes as bytes")
+
+    design, calib, frames = _sequence("hexagon127", 0.0, n=4)
+    big = np.zeros((1000, 1000), np.uint8)
+    big[:480, :640] = frames[0].right
+    proc = vp.ViewProcess(design, None)
+    try:
+        assert proc._shared is not None and big.nbytes > vp.SHARED_IMAGE_BYTES
+        for image in (frames[1].right, frames[3].right, big):
+            assert not image.flags.c_contiguous or image is big
+            proc.submit(image, DetectionParams())
+            blobs = proc.result()[0]
+            here = detect_markers(image)
+            assert len(here) > 0.9 * design.marker_count
+            assert np.array_equal(blobs.xy_px, here.xy_px)
+    finally:
+        proc.close()
