@@ -275,7 +275,7 @@ class Reconstructor:
         completed = across_views((left, right), codings, self.design, self._locate, self._last_places)
         matches = self._tracker.commit(left, right, completed)
         if self._right is not None:       # the worker's tracker follows this one's
-            self._right.repeat("commit", left, right, completed)
+            self._right.repeat("advance", self._tracker.certified)
         return matches
 
     @property

@@ -7,8 +7,10 @@ worker thread of :mod:`pipeline.threads` runs it one view after the other (circu
 
 The worker keeps its own :class:`~pipeline.vision.dtrc.DTRCTracker` and codes only the right view with it. Its
 state stays the runner's own because it is changed by the same calls on the same data, sent in order over one
-pipe: every frame's :meth:`~pipeline.vision.dtrc.DTRCTracker.commit` (both views' blobs and their completed
-codings) and every :meth:`~pipeline.vision.dtrc.DTRCTracker.forget` (the ids the stereo check rejects). The
+pipe: after every frame's commit, :meth:`~pipeline.vision.dtrc.DTRCTracker.advance` with the markers it certified
+in each view (pixels and ids, ~10 kB on circular217: the whole blobs and completed codings took 0.15-0.25 ms to
+pickle and send, on the frame's path), and every :meth:`~pipeline.vision.dtrc.DTRCTracker.forget` (the ids the
+stereo check rejects). The
 runner's tracker still does all of it too, so when the worker fails the runner codes the right view itself
 from then on with nothing lost (:class:`ViewProcessError` says why). The worker is ``python -m
 pipeline.view_process`` on a socket pair (not :mod:`multiprocessing`'s spawn, which imports the caller's main
@@ -56,8 +58,8 @@ def _shared_buffer(fd: int) -> mmap.mmap:
 def _serve(conn: Connection, shared: mmap.mmap | None = None) -> None:
     """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params, niceness, in_shared)``
     followed, unless ``in_shared`` (the image is then in ``shared``), by the image's bytes -> ``("ok", (blobs, coding,
-    t_detect, t_identify))`` or ``("error", text)``; ``("commit",
-    left, right, codings)`` and ``("forget", ids)`` change the tracker as the runner's own calls do (no reply);
+    t_detect, t_identify))`` or ``("error", text)``; ``("advance",
+    certified)`` and ``("forget", ids)`` change the tracker as the runner's own calls do (no reply);
     ``None`` or a closed socket ends it. Each view runs at the niceness of the frame thread that sent it."""
     import cv2
 
@@ -96,8 +98,8 @@ def _serve(conn: Connection, shared: mmap.mmap | None = None) -> None:
                         t1 = time.perf_counter()
                         coding = tracker.code_view(1, blobs)
                     conn.send(("ok", (blobs, coding, t1 - t0, time.perf_counter() - t1)))
-                elif kind == "commit":
-                    tracker.commit(*msg[1:])
+                elif kind == "advance":
+                    tracker.advance(msg[1])
                 elif kind == "forget":
                     tracker.forget(msg[1])
             except Exception as exc:          # reported at the next request; the runner then stops using it
@@ -126,8 +128,8 @@ class ViewProcess:
     """A worker process that detects and identifies the right view (see the module notes).
 
     ``submit(image, params)`` starts a view, ``result()`` waits for it: ``(blobs, (coding, read_from_rest),
-    t_detect_s, t_identify_s)`` as :meth:`pipeline.runner.Reconstructor._view` returns them. ``commit`` and
-    ``forget`` must follow every call of the runner's tracker of the same name. ``close()`` (or dropping the
+    t_detect_s, t_identify_s)`` as :meth:`pipeline.runner.Reconstructor._view` returns them. ``advance`` (with the runner's
+    tracker's ``certified``) must follow every commit of the runner's tracker, ``forget`` every ``forget``. ``close()`` (or dropping the
     object) stops the process. A fresh interpreter, not a fork: a fork of a process running BLAS, OpenCV or numba
     threads may inherit their locks held; it loads the compiled kernels from numba's cache."""
 
@@ -180,8 +182,8 @@ class ViewProcess:
             raise ViewProcessError(payload)
         return payload
 
-    def commit(self, left, right, codings) -> None:
-        self._send(("commit", left, right, codings))
+    def advance(self, certified) -> None:
+        self._send(("advance", certified))
 
     def forget(self, ids: np.ndarray) -> None:
         self._send(("forget", np.asarray(ids)))
@@ -203,7 +205,7 @@ class RightView:
     """The runner's right view: coded by a :class:`ViewProcess` while it works, by the runner's own ``view``
     function from the first failure on (``error`` says why; the runner's tracker holds the same state, so
     nothing is lost). ``both`` returns both views' :meth:`~pipeline.runner.Reconstructor._view` results;
-    ``repeat(call, *args)`` repeats a tracker call (``"commit"``, ``"forget"``) in the worker."""
+    ``repeat(call, *args)`` repeats a tracker call (``"advance"``, ``"forget"``) in the worker."""
 
     def __init__(self, design, rest) -> None:
         self.error: str | None = None

@@ -236,11 +236,23 @@ class DTRCTracker:
         (lc, lrest), (rc, rrest) = codings
         self.read_from_rest = lrest or rrest
         self.last_codings = (lc, rc)
+        self.advance([(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))])
+        return _pair(left, right, lc, rc, _marker_count(self.design))
+
+    @property
+    def certified(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per view, (pixels, ids) of the markers the latest frame certified: what :meth:`advance` took."""
+        return self._previous if self._previous is not None else [_NONE] * 2
+
+    def advance(self, certified: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """The part of :meth:`commit` that the next frame's :meth:`code_view` reads: ``certified`` per view
+        (pixels (n, 2), ids (n,)) become the latest frame, the one before it the frame before, and the lost
+        markers' places are carried on. A tracker that codes one view for another's (a worker process) follows
+        it with the other's :attr:`certified` alone."""
         two_back = self._before if self._before is not None else [_NONE] * 2   # certified in the frame before the latest
         if self._before is not None and len(self._before[0][1]) + len(self._before[1][1]):
             self._older = [self._before, *self._older][:REACQUIRE_FRAMES - 1]
         self._before = self._previous if self._previous is not None else [_NONE] * 2
-        certified = [(b.xy_px[c.carried >= 0], c.carried[c.carried >= 0]) for b, c in ((left, lc), (right, rc))]
         if self.temporal:
             lat = lattice_of(self.design)
             was = ([(np.vstack([p[0], q[0]]), np.concatenate([p[1], q[1]])) for p, q in zip(self._previous, self._lost)]
@@ -251,7 +263,6 @@ class DTRCTracker:
             self._lost = [carry_lost(w, c, lat.xy, lat.nbr, b) for w, c, b in zip(was, certified, two_back)]
         self._previous = certified
         self._frames += 1
-        return _pair(left, right, lc, rc, _marker_count(self.design))
 
     def update(self, left: Blobs, right: Blobs) -> MarkerMatches:
         return self.commit(left, right, (self.code_view(0, left), self.code_view(1, right)))
