@@ -116,14 +116,20 @@ def _no_better_centre(pts, slot_of, members, lat) -> bool:
     per-ring gates where a press bends the rings and defects thin them to the coverage allowed
     (circular217, 5 mm, sigma 3 mm, 0.66 mm off the axis, 2 % defects: 158 ids, all wrong, rings 1-3 at
     0.21 of ring 1's radius, the true centring of those blobs at 0.017)."""
-    r0 = _ring_residual(pts, slot_of, members, lat.xy, lat.layer_of, RING_COVERAGE)
+    return _no_better_centre_kernel(pts, slot_of, members, lat.xy, lat.layer_of, _ring1_shifts(lat))
+
+
+@numba.njit(cache=True, nogil=True)
+def _no_better_centre_kernel(pts, slot_of, members, xy, layer_of, tab):
+    """:func:`_no_better_centre` in one compiled call (``tab``: :func:`_ring1_shifts`)."""
+    r0 = _ring_residual(pts, slot_of, members, xy, layer_of, RING_COVERAGE)
     if r0 <= 0:
         return True
-    tab = _ring1_shifts(lat)
     alt = np.full(len(slot_of), -1, np.int64)
     for j in range(tab.shape[1]):
-        alt[members] = tab[slot_of[members], j]
-        r = _ring_residual(pts, alt, members, lat.xy, lat.layer_of, RING_ALT_COVERAGE)
+        for b in members:
+            alt[b] = tab[slot_of[b], j]
+        r = _ring_residual(pts, alt, members, xy, layer_of, RING_ALT_COVERAGE)
         if r > 0 and r0 > RING_ALT_RATIO * r:
             return False
     return True
