@@ -58,11 +58,11 @@ def _shared_buffer(fd: int) -> mmap.mmap:
 
 
 def _serve(conn: Connection, shared: mmap.mmap | None = None) -> None:
-    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params, niceness, in_shared)``
-    followed, unless ``in_shared`` (the image is then in ``shared``), by the image's bytes -> ``("ok", (blobs, coding,
-    t_detect, t_identify))`` or ``("error", text)``; ``("advance",
-    certified)`` and ``("forget", ids)`` change the tracker as the runner's own calls do (no reply);
-    ``None`` or a closed socket ends it. Each view runs at the niceness of the frame thread that sent it."""
+    """The worker's loop. First ``(design, rest, temporal)``; then ``("code", shape, dtype, params, niceness,
+    in_shared)`` followed, unless ``in_shared`` (the image is then in ``shared``), by the image's bytes ->
+    ``("ok", (blobs, coding, t_detect, t_identify))`` or ``("error", text)``; ``("advance", certified)`` and
+    ``("forget", ids)`` change the tracker as the runner's own calls do (no reply); ``None`` or a closed socket ends
+    it. Each view runs at the niceness of the frame thread that sent it."""
     import cv2
 
     from pipeline.threads import one_thread
@@ -87,8 +87,7 @@ def _serve(conn: Connection, shared: mmap.mmap | None = None) -> None:
                         conn.send(("error", broken))
                         continue
                     # a copy: the runner writes the next frame's view into the buffer once this one is answered
-                    size = int(np.prod(shape)) * np.dtype(dtype).itemsize
-                    image = np.frombuffer(raw, np.dtype(dtype), count=size // np.dtype(dtype).itemsize).reshape(shape).copy()
+                    image = np.frombuffer(raw, np.dtype(dtype), count=int(np.prod(shape))).reshape(shape).copy()
                     if nice != os.getpriority(os.PRIO_PROCESS, 0):
                         try:                   # the frame thread's niceness (``reconstruct --nice``)
                             os.setpriority(os.PRIO_PROCESS, 0, nice)
@@ -130,40 +129,33 @@ class ViewProcess:
     """A worker process that detects and identifies the right view (see the module notes).
 
     ``submit(image, params)`` starts a view, ``result()`` waits for it: ``(blobs, (coding, read_from_rest),
-    t_detect_s, t_identify_s)`` as :meth:`pipeline.runner.Reconstructor._view` returns them. ``advance`` (with the runner's
-    tracker's ``certified``) must follow every commit of the runner's tracker, ``forget`` every ``forget``. ``close()`` (or dropping the
-    object) stops the process. A fresh interpreter, not a fork: a fork of a process running BLAS, OpenCV or numba
-    threads may inherit their locks held; it loads the compiled kernels from numba's cache."""
+    t_detect_s, t_identify_s)`` as :meth:`pipeline.runner.Reconstructor._view` returns them. ``advance`` (with
+    the runner's tracker's ``certified``) must follow every commit of the runner's tracker, ``forget`` every
+    ``forget``. ``close()`` (or dropping the object) stops the process. A fresh interpreter, not a fork: a fork of
+    a process running BLAS, OpenCV or numba threads may inherit their locks held; it loads the compiled kernels
+    from numba's cache."""
 
     def __init__(self, design, rest, *, temporal: bool = True) -> None:
         mine, theirs = socket.socketpair()
         # the worker imports this very package (the checkout the caller runs, installed or not)
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        fds, args = [theirs.fileno()], [str(theirs.fileno())]
+        fds = [theirs.fileno()]
         self._shared = None
-        if hasattr(os, "memfd_create"):
-            fd = os.memfd_create("stereotactip-view")
-            try:
-                os.ftruncate(fd, SHARED_IMAGE_BYTES)
-                self._shared = _shared_buffer(fd)
-                fds.append(fd)
-                args.append(str(fd))
-                self._start(fds, args, env)
-            finally:
-                os.close(fd)           # both mappings stay valid
-                theirs.close()
-        else:
-            try:
-                self._start(fds, args, env)
-            finally:
-                theirs.close()
+        try:
+            if hasattr(os, "memfd_create"):
+                fds.append(os.memfd_create("stereotactip-view"))
+                os.ftruncate(fds[1], SHARED_IMAGE_BYTES)
+                self._shared = _shared_buffer(fds[1])
+            self._proc = subprocess.Popen([sys.executable, "-m", "pipeline.view_process", *map(str, fds)],
+                                          pass_fds=fds, env=env)
+        finally:
+            theirs.close()
+            for fd in fds[1:]:
+                os.close(fd)           # the two mappings stay valid
         self._conn = Connection(mine.detach())
         self._finalizer = weakref.finalize(self, _stop, self._proc, self._conn)
         self._send((design, rest, temporal))
-
-    def _start(self, fds: list[int], args: list[str], env: dict) -> None:
-        self._proc = subprocess.Popen([sys.executable, "-m", "pipeline.view_process", *args], pass_fds=fds, env=env)
 
     def submit(self, image: np.ndarray, params) -> None:
         nice = os.getpriority(os.PRIO_PROCESS, 0)
