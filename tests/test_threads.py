@@ -154,3 +154,33 @@ def test_the_runner_gives_the_same_result_on_one_and_two_view_threads(name):
         assert b.timings_ms["views"] <= b.timings_ms["total"]
     with pytest.raises(RunnerError, match="view threads"):
         Reconstructor(design, calib, view_threads=4)
+
+
+def test_one_thread_holds_every_pool_at_one_and_restores_the_callers_counts():
+    """Inside the block OpenCV and every BLAS pool threadpoolctl finds run one thread; afterwards each is back at
+    the caller's count, also when the block raises, and a pool the caller had at one thread stays there."""
+    import cv2
+
+    from pipeline.threads import _controller, one_thread
+
+    libs = _controller().lib_controllers
+    assert libs, "no BLAS pool found: numpy and scipy load OpenBLAS"
+    cv_before, blas_before = cv2.getNumThreads(), [lib.get_num_threads() for lib in libs]
+    try:
+        cv2.setNumThreads(2)
+        libs[0].set_num_threads(1)
+        for lib in libs[1:]:
+            lib.set_num_threads(2)
+        with one_thread():
+            assert cv2.getNumThreads() == 1
+            assert [lib.get_num_threads() for lib in libs] == [1] * len(libs)
+        assert cv2.getNumThreads() == 2
+        assert [lib.get_num_threads() for lib in libs] == [1] + [2] * (len(libs) - 1)
+        with pytest.raises(RuntimeError, match="inside"):
+            with one_thread():
+                raise RuntimeError("inside")
+        assert cv2.getNumThreads() == 2 and [lib.get_num_threads() for lib in libs][1:] == [2] * (len(libs) - 1)
+    finally:
+        cv2.setNumThreads(cv_before)
+        for lib, n in zip(libs, blas_before):
+            lib.set_num_threads(n)
