@@ -84,7 +84,8 @@ def run(ctx: Context) -> Result:
                      f"OpenCV {m.get('opencv', '?')} and BLAS/OpenMP at 1 thread per frame (pipeline.threads); "
                      f"views on {raw.get('view_threads', '?')} thread(s) (--param view_threads=1|2; 2: the right "
                      "view detected and identified on a worker thread beside the left; 'detect' and 'match' "
-                     "add up both views' work, 'views' is their wall time); "
+                     "add up both views' work, 'views' is their wall time; 'total' is the whole Reconstructor.process "
+                     "call); "
                      + ("the right view in a worker process (--param view_process=1); " if view_process else "")
                      + f"background load: {load} process(es) spinning on a core each "
                      f"(--param background_procs=N); frames processed at niceness {raw.get('niceness', '?')} "
