@@ -99,7 +99,8 @@ def test_reconstruct_cli_with_the_view_process(tmp_path):
 def test_the_worker_reads_a_view_from_the_shared_buffer_and_a_larger_one_as_bytes():
     """A strided right half of a stereo frame goes through the buffer both processes map; an image larger than
     that buffer goes over the socket as bytes. The worker's blobs equal the detector's in this process either way,
-    and a buffer written again for the next view is read anew (the worker copies each view out)."""
+    and a buffer written again for the next view is read anew (the worker detects each view where it lies, and
+    answers before the runner writes the next one)."""
     import os
 
     import pipeline.view_process as vp
