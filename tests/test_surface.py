@@ -113,15 +113,15 @@ def test_thin_plate_spline_is_scipys_and_its_gradient_is_exact(n):
 
 def test_a_stream_of_frames_is_refined_on_an_earlier_factorisation(monkeypatch):
     """Frame after frame, the spline system is solved by iterative refinement on the factorisation of
-    an earlier frame's system (surface.REFINE_RTOL): the skin points agree with a direct solve of each
+    an earlier frame's system (spline.REFINE_RTOL): the skin points agree with a direct solve of each
     frame to 1e-9 mm (measured ~1e-10), the press sequence is factorised once, and a frame that is far
     from the kept factorisation (markers in another order) or of another size is factorised afresh."""
-    import pipeline.geometry.surface as surface
+    import pipeline.geometry.spline as spline
 
     calls = []
-    getrf = surface._GETRF
-    monkeypatch.setattr(surface, "_GETRF", lambda *a, **k: calls.append(1) or getrf(*a, **k))
-    monkeypatch.setattr(surface._Scratch, "_local", __import__("threading").local())
+    getrf = spline._GETRF
+    monkeypatch.setattr(spline, "_GETRF", lambda *a, **k: calls.append(1) or getrf(*a, **k))
+    monkeypatch.setattr(spline._Scratch, "_local", __import__("threading").local())
     design = load_design("circular217_dome")
     xy = design.rest_markers_mm()[:, :2]
     rng = np.random.default_rng(3)
