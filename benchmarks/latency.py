@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from pipeline.design import load_design
-from pipeline.priority import frame_priority
+from pipeline.priority import cpu_latency, frame_priority
 from pipeline.runner import Reconstructor
 from pipeline.threads import default_view_threads
 from pipeline.io.synthetic import gaussian_press_markers, nominal_calibration, synth_stereo_frame
@@ -107,7 +107,7 @@ def _with_defects(frame, design, calib, xyz: np.ndarray, rate: float, rng: np.ra
 
 def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generator, n_distinct_frames: int,
                  progress: bool, view_threads: int | None = None, defects: float = 0.0,
-                 view_process: bool = False) -> dict:
+                 view_process: bool = False, cpu_latency_us: int | None = None) -> dict:
     """One design's timing in :func:`run_latency`: ``n_frames`` synthetic press frames through a fresh
     runner, each preceded by the reference job, after one warm-up frame."""
     from tqdm import tqdm
@@ -147,7 +147,7 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
                 out_dir: str | Path | None = None, *, refraction: str = "exact", seed: int = 0,
                 n_distinct_frames: int = 20, progress: bool = True, background_procs: int = 0,
                 nice: int | None = None, view_threads: int | None = None, defects: float = 0.0,
-                view_process: bool = False) -> dict:
+                view_process: bool = False, cpu_latency_us: int | None = None) -> dict:
     """Time the whole runner per stage on synthetic frames (the runner holds BLAS, OpenMP and
     OpenCV at one thread per frame: :mod:`pipeline.threads`).
 
@@ -163,6 +163,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
         process's own); the spinning processes keep theirs
     view_threads : 1 or 2 (the runner's ``view_threads``; None: its default, 2 on two or more CPUs)
     view_process : the right view in a worker process (the runner's ``view_process``), not on a thread
+    cpu_latency_us : while the frames are timed, every CPU is asked to wake within this many microseconds
+        (:func:`pipeline.priority.cpu_latency`; 0: idle CPUs poll; None: the system's own)
     defects : fraction of the markers hidden, and as many spurious blobs added, in each view of each frame
         (:func:`_with_defects`; 0 = clean frames)
 
@@ -184,8 +186,8 @@ def run_latency(design_names: tuple[str, ...] = ("hexagon127", "circular217_dome
                     "designs": {}}
     load = _busy_processes(int(background_procs))
     try:
-        with frame_priority(nice) as niceness:
-            result["niceness"] = niceness
+        with frame_priority(nice) as niceness, cpu_latency(cpu_latency_us) as wake_us:
+            result["niceness"], result["cpu_latency_us"] = niceness, wake_us
             for name in design_names:
                 result["designs"][name] = _time_design(load_design(name), n_frames, refraction, rng,
                                                        n_distinct_frames, progress, view_threads, float(defects),

@@ -232,6 +232,32 @@ def test_reconstruct_runs_its_frames_at_the_niceness_asked_for(recording, tmp_pa
     assert run(tmp_path / "o2", -10)["rc"] == 2 and "CAP_SYS_NICE" in capsys.readouterr().err
 
 
+def test_reconstruct_holds_the_cpu_latency_asked_for_while_it_processes_frames(recording, tmp_path, monkeypatch,
+                                                                              capsys):
+    """`reconstruct --cpu-latency US` holds the PM QoS request while every frame is processed (a stand-in file
+    for the kernel's device records what was asked), and a system without the device is a clear error (exit 2)."""
+    import struct
+
+    import pipeline.priority as priority
+
+    dev = tmp_path / "cpu_dma_latency"
+    dev.write_bytes(struct.pack("=i", 2_000_000_000))
+    monkeypatch.setattr(priority, "PM_QOS_DEVICE", str(dev))
+    seen = []
+    real = Reconstructor.process
+
+    def process(self, frame):
+        seen.append(struct.unpack("=i", dev.read_bytes())[0])
+        return real(self, frame)
+
+    monkeypatch.setattr(Reconstructor, "process", process)
+    args = ["reconstruct", str(recording / "frames"), "--calib", str(recording / "calib.yaml")]
+    assert main(args + ["--out", str(tmp_path / "o"), "--cpu-latency", "0"]) == 0 and seen == [0] * 3
+    monkeypatch.setattr(priority, "PM_QOS_DEVICE", str(tmp_path / "missing"))
+    assert main(args + ["--out", str(tmp_path / "o2"), "--cpu-latency", "0"]) == 2
+    assert "Linux only" in capsys.readouterr().err
+
+
 def test_interrupted_reconstruction_still_writes_its_summary(recording, tmp_path):
     design = load_design("hexagon127")
     calib = nominal_calibration(design)

@@ -1,17 +1,19 @@
 """The frame thread's scheduling priority (pipeline.priority): asked for, in force inside the block, restored
 after it, confined to the calling thread, and refused with a clear error where the OS refuses. Whether a lower
 niceness buys a larger share of a loaded machine is measured by `stereotactip bench latency --param nice=N
---param background_procs=N`, not asserted here."""
+--param background_procs=N`, not asserted here. Likewise the CPU wake-up latency request: held in the block,
+released after it, refused clearly (its effect: `bench latency --param cpu_latency=0`)."""
 
 from __future__ import annotations
 
 import os
+import struct
 import threading
 
 import pytest
 
 from pipeline.errors import UserError
-from pipeline.priority import current_niceness, frame_priority
+from pipeline.priority import PM_QOS_DEVICE, cpu_latency, current_niceness, frame_priority
 
 
 def _in_thread(fn):
@@ -85,3 +87,55 @@ def test_out_of_range_and_refused_niceness_are_clear_errors(monkeypatch):
     with pytest.raises(UserError, match="CAP_SYS_NICE"):
         with frame_priority(-10):
             pass
+
+
+# --- the CPU wake-up latency request ----------------------------------------------------------------------------
+
+def _device_value(path=PM_QOS_DEVICE) -> int:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        return struct.unpack("=i", os.read(fd, 4))[0]
+    finally:
+        os.close(fd)
+
+
+def test_a_cpu_latency_request_is_written_as_the_kernel_reads_it_and_held_only_in_the_block(tmp_path):
+    """The request is the 4-byte native integer the kernel's PM QoS device takes, written when the block
+    starts; the value yielded is what the device reads back. Checked on a stand-in file (the device
+    itself below); None asks nothing."""
+    dev = tmp_path / "cpu_dma_latency"
+    dev.write_bytes(b"\xff\xff\xff\x7f")
+    with cpu_latency(7, device=str(dev)) as in_force:
+        assert in_force == 7 and _device_value(str(dev)) == 7
+    with cpu_latency(None, device=str(dev)) as in_force:
+        assert in_force is None
+    assert dev.read_bytes() == struct.pack("=i", 7)
+
+
+def test_a_cpu_latency_request_that_cannot_be_made_is_a_clear_error(tmp_path, monkeypatch):
+    with pytest.raises(UserError, match="must be 0 or more"):
+        with cpu_latency(-1, device=str(tmp_path / "x")):
+            pass
+    with pytest.raises(UserError, match="Linux only"):
+        with cpu_latency(0, device=str(tmp_path / "missing")):
+            pass
+
+    def refuse(*a, **k):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(os, "open", refuse)
+    with pytest.raises(UserError, match="needs root"):
+        with cpu_latency(0, device=str(tmp_path / "x")):
+            pass
+
+
+@pytest.mark.skipif(not os.access(PM_QOS_DEVICE, os.W_OK), reason=f"no writable {PM_QOS_DEVICE} here (Linux PM QoS; "
+                    "root): the request is checked on a stand-in file above")
+def test_the_kernel_holds_a_zero_wake_up_latency_while_the_block_runs_and_drops_it_after():
+    """On the real device: while the block runs the kernel's limit for the whole system is 0 us (idle CPUs
+    poll); afterwards it is back to what it was. Whether that shortens frames is measured by `stereotactip
+    bench latency --param cpu_latency=0`, not asserted here."""
+    before = _device_value()
+    with cpu_latency(0) as in_force:
+        assert in_force == 0 and _device_value() == 0
+    assert _device_value() == before

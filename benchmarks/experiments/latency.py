@@ -47,13 +47,14 @@ def run(ctx: Context) -> Result:
     n_frames = int(ctx.param("n_frames", 200, quick=40))
     load = int(ctx.param("background_procs", 0))
     nice = ctx.param("nice", None)
+    wake = ctx.param("cpu_latency", None)      # microseconds every CPU is asked to wake within (0: idle CPUs poll)
     view_threads = ctx.param("view_threads", None)
     defects = float(ctx.param("defects", 0.0))
     view_process = bool(int(ctx.param("view_process", 0)))      # 1: the right view in a worker process
     raw = run_latency(names, n_frames, ctx.out_dir / "latency_raw", seed=ctx.seed, progress=ctx.progress,
                       background_procs=load, nice=None if nice is None else int(nice),
                       view_threads=None if view_threads is None else int(view_threads), defects=defects,
-                      view_process=view_process)
+                      view_process=view_process, cpu_latency_us=None if wake is None else int(wake))
     out = Result(designs=[load_design(n) for n in names])
     medians, p95s, matched, ratios, refs = [], [], [], [], []
     rows = []
@@ -90,7 +91,10 @@ def run(ctx: Context) -> Result:
                      + f"background load: {load} process(es) spinning on a core each "
                      f"(--param background_procs=N); frames processed at niceness {raw.get('niceness', '?')} "
                      "(--param nice=N); "
-                     f"refraction '{raw.get('refraction', '?')}'; "
+                     + ("CPU wake-up latency: the system's own (--param cpu_latency=US asks every CPU to wake within "
+                        "US microseconds; 0: idle CPUs poll); " if raw.get("cpu_latency_us") is None else
+                        f"every CPU asked to wake within {raw['cpu_latency_us']} us (PM QoS, --param cpu_latency=US); ")
+                     + f"refraction '{raw.get('refraction', '?')}'; "
                      f"{n_frames} frames per design after one warm-up frame; synthetic frames (pipeline.io.synthetic)"
                      + (f", {100 * defects:g} % of the markers hidden and as many spurious blobs added in each view "
                         "(--param defects=F)." if defects > 0 else "; no marker missing, no spurious blob "

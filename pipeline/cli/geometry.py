@@ -162,7 +162,7 @@ def _calibrate_refraction(args: argparse.Namespace) -> int:
 def _reconstruct(args: argparse.Namespace) -> int:
     from pipeline.design import load_design
     from pipeline.batch import reconstruct
-    from pipeline.priority import frame_priority
+    from pipeline.priority import cpu_latency, frame_priority
     from pipeline.runner import Reconstructor
 
     design = load_design(args.design)
@@ -170,7 +170,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     rec = Reconstructor(design, calib, refraction=args.refraction, n_gel=args.n_gel, tracker=args.tracker,
                         view_threads=args.view_threads, view_process=args.view_process)
     try:
-        with frame_priority(args.nice):
+        with frame_priority(args.nice), cpu_latency(args.cpu_latency):
             summary = reconstruct(_open_source(args.source), rec, args.out, max_frames=args.max_frames,
                                   preview_every=args.preview_every)
     finally:
@@ -229,4 +229,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--nice", type=int, default=None, metavar="N",
                    help="process frames at niceness N (e.g. -10: a larger share of a loaded machine; below the "
                         "current niceness needs root or CAP_SYS_NICE)")
+    p.add_argument("--cpu-latency", type=int, default=None, metavar="US",
+                   help="while frames are processed, ask Linux that every CPU wake within US microseconds (PM QoS, "
+                        "/dev/cpu_dma_latency; 0: idle CPUs poll instead of halting, so the right view's thread starts "
+                        "at once, at the cost of the idle cores' power; needs root)")
     p.set_defaults(func=_reconstruct)
