@@ -243,6 +243,21 @@ def test_latency_benchmark_writes_json(tmp_path):
     assert set(stages) >= {"detect", "match", "triangulate", "refraction", "surface", "total"}
     assert stored["designs"]["hexagon127"]["matched_min"] == 127
     assert res["paper_ms"] == 283.0 and stages["total"]["p95_ms"] >= stages["total"]["median_ms"] > 0
+    assert stored["cpu_latency_us"] is None                   # nothing asked of the system by default
+
+
+def test_latency_benchmark_holds_the_cpu_latency_request_it_is_asked_for(tmp_path, monkeypatch):
+    """``cpu_latency_us``: the frames are timed under the request (a stand-in file for the kernel's PM QoS
+    device shows it written), and the run records it."""
+    import struct
+
+    import pipeline.priority as priority
+
+    dev = tmp_path / "cpu_dma_latency"
+    dev.write_bytes(struct.pack("=i", 2_000_000_000))
+    monkeypatch.setattr(priority, "PM_QOS_DEVICE", str(dev))
+    res = run_latency(("hexagon127",), n_frames=3, n_distinct_frames=2, progress=False, cpu_latency_us=0)
+    assert res["cpu_latency_us"] == 0 and struct.unpack("=i", dev.read_bytes())[0] == 0
 
 
 def test_reconstruct_calls_on_result_for_every_frame(tmp_path):
