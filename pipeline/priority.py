@@ -76,8 +76,9 @@ def frame_priority(nice: int | None):
 def cpu_latency(max_us: int | None, device: str | None = None):
     """Run the block with a request that every CPU wake within ``max_us`` microseconds (0: idle CPUs poll),
     released afterwards; ``None`` asks nothing. Yields the limit in force for the whole system while the
-    block runs (the strictest of all requests, as the kernel reads it back), or None when nothing was asked.
-    ``device``: the PM QoS file (default :data:`PM_QOS_DEVICE`)."""
+    block runs (the strictest of all requests, as the kernel reads it back; the value asked where the device
+    may be written but not read), or None when nothing was asked. ``device``: the PM QoS file (default
+    :data:`PM_QOS_DEVICE`)."""
     device = PM_QOS_DEVICE if device is None else device
     if max_us is None:
         yield None
@@ -85,8 +86,12 @@ def cpu_latency(max_us: int | None, device: str | None = None):
     max_us = int(max_us)
     if max_us < 0:
         raise UserError(f"CPU wake-up latency {max_us} us: must be 0 or more")
+    readable = True
     try:
-        fd = os.open(device, os.O_RDWR)
+        try:
+            fd = os.open(device, os.O_RDWR)
+        except PermissionError:          # a udev rule may grant writing only
+            fd, readable = os.open(device, os.O_WRONLY), False
     except FileNotFoundError:
         raise UserError(f"no {device} here: this system has no PM QoS CPU latency request (Linux only); "
                         "run without --cpu-latency") from None
@@ -95,8 +100,10 @@ def cpu_latency(max_us: int | None, device: str | None = None):
                         "the device (e.g. a udev rule), or run without --cpu-latency") from None
     try:
         os.write(fd, struct.pack("=i", max_us))
-        os.lseek(fd, 0, os.SEEK_SET)
-        in_force = struct.unpack("=i", os.read(fd, 4))[0]
+        in_force = max_us
+        if readable:
+            os.lseek(fd, 0, os.SEEK_SET)
+            in_force = struct.unpack("=i", os.read(fd, 4))[0]
         yield in_force
     finally:
         os.close(fd)                     # closing the file releases the request

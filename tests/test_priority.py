@@ -120,6 +120,20 @@ def test_a_cpu_latency_request_that_cannot_be_made_is_a_clear_error(tmp_path, mo
         with cpu_latency(0, device=str(tmp_path / "missing")):
             pass
 
+    dev = tmp_path / "write_only"
+    dev.write_bytes(struct.pack("=i", 2_000_000_000))
+    real_open = os.open
+
+    def write_only(path, flags, *a):      # a device a udev rule lets the user write but not read
+        if flags & os.O_ACCMODE != os.O_WRONLY:
+            raise PermissionError(13, "Permission denied")
+        return real_open(path, flags, *a)
+
+    monkeypatch.setattr(os, "open", write_only)
+    with cpu_latency(3, device=str(dev)) as in_force:
+        assert in_force == 3
+    assert dev.read_bytes() == struct.pack("=i", 3)
+
     def refuse(*a, **k):
         raise PermissionError(13, "Permission denied")
 
