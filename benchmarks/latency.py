@@ -107,7 +107,7 @@ def _with_defects(frame, design, calib, xyz: np.ndarray, rate: float, rng: np.ra
 
 def _time_design(design, n_frames: int, refraction: str, rng: np.random.Generator, n_distinct_frames: int,
                  progress: bool, view_threads: int | None = None, defects: float = 0.0,
-                 view_process: bool = False, cpu_latency_us: int | None = None) -> dict:
+                 view_process: bool = False) -> dict:
     """One design's timing in :func:`run_latency`: ``n_frames`` synthetic press frames through a fresh
     runner, each preceded by the reference job, after one warm-up frame."""
     from tqdm import tqdm

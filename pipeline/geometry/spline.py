@@ -49,8 +49,9 @@ def _pairwise_r2(xy, out):
 @numba.njit(cache=True, nogil=True)
 def _tps_fill(xy, log_r2, tail, smoothing, lhs):
     """Fill the (N + 3)^2 spline system ``[[K + s I, P], [P^T, 0]]`` (K_ij = r^2 log r = r_ij^2 log(r_ij^2)
-    / 2, P = ``tail``) from the pairwise ``log_r2``, row by row. Returns the system's infinity norm
-    (largest absolute row sum)."""
+    / 2, P = ``tail``) from the pairwise ``log_r2``, row by row, r_ij^2 computed again alongside (cheaper
+    than reading it back from a block of the system: 106 against 112-123 us for circular217's whole system,
+    in a loop). Returns the system's infinity norm (largest absolute row sum)."""
     n = len(xy)
     rows = np.zeros(n + 3)
     for i in range(n):
@@ -254,7 +255,8 @@ class ThinPlateSpline:
     directly: at the pipeline's sizes (<= a few hundred markers) scipy's general machinery costs more
     than the fit, and the normals needed four extra evaluations per marker for finite differences.
     ``gradient`` is exact, and at the centres it reuses the fit's pairwise logarithms. The system and
-    the gradient at the centres are compiled loops (one logarithm per pair, no (N, N) temporaries).
+    the gradient at the centres are compiled loops over the (N, N) pairs (no temporaries of that size
+    but the logarithms, which numpy takes over the whole block: :func:`_tps_system`).
     """
 
     _CHUNK = 4096  # query points evaluated at a time (bounds the (chunk, N) blocks)
